@@ -1,0 +1,252 @@
+"""The Mars exploration environment (paper sections II.A and IV.A) as pure JAX functions.
+
+Shape legend
+    N  rovers (the agents), P  points of interest (POIs), T  traps (craters),
+    O  observation size of one rover = 4 + 2P + 2T + 2(N - 1),
+    A  action size of one rover = 2 (a force in [-1, 1]^2, scaled by ``sensitivity``).
+
+Physics is the Multi-Particle Environment model, integrated in the order of mpe2's
+``World.step`` (position from the old velocity first, then damping and force), so one step
+can be checked against mpe2's ``simple_spread`` to float precision.
+
+Reward of rover i (paper eq. 16)::
+
+    r_i = - sum_j min_m ||p_m - poi_j||  -  C_rr(i)  -  C_rt(i)
+
+the swarm's coverage distance (shared by all rovers), the number of other rovers that rover i
+touches and the number of traps it touches. An *episode reward* in roverswarm is the sum of
+``r_i`` over all rovers and all steps (as the reference MADDPG code reports it); per-rover
+episode rewards are reported too. Published MPE numbers that average over agents differ by
+exactly a factor N.
+
+Episodes last ``max_steps`` (25) steps. The time limit is a *truncation*: learners bootstrap
+through it. ``terminated`` is only ever true in mission mode (``terminate_on_complete``), when
+every POI has been observed.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from roverswarm.errors import UserError, require
+
+ACTION_SIZE = 2
+# Candidate positions drawn per trap / rover at reset; the first one that keeps clear of what
+# it must not touch is used (a fixed-size, jittable rejection sampler).
+_LAYOUT_CANDIDATES = 16
+
+
+@struct.dataclass
+class EnvParams:
+    """Static sizes (not traced) and physical/reward constants (traced: can be vmapped)."""
+
+    num_rovers: int = struct.field(pytree_node=False, default=3)
+    num_pois: int = struct.field(pytree_node=False, default=3)
+    num_traps: int = struct.field(pytree_node=False, default=3)
+    max_steps: int = struct.field(pytree_node=False, default=25)
+    terminate_on_complete: bool = struct.field(pytree_node=False, default=False)
+    map_size: float = 1.0  # half-width of the square map [-map_size, map_size]^2
+    rover_radius: float = 0.15
+    poi_radius: float = 0.05  # drawn size only: POIs never collide
+    trap_radius: float = 0.1  # scalar, or [T] per trap
+    observe_radius: float = 0.1  # a POI is observed when a rover's centre is this close
+    dt: float = 0.1
+    damping: float = 0.25
+    mass: float = 1.0
+    sensitivity: float = 5.0  # force = sensitivity * action
+    contact_force: float = 1e2
+    contact_margin: float = 1e-3
+    collision_penalty: float = 1.0  # reward per rover touched per step
+    trap_penalty: float = 1.0  # reward per trap touched per step
+
+
+@struct.dataclass
+class EnvState:
+    """One episode's state. Leading batch axes appear only under vmap."""
+
+    rover_pos: jax.Array  # [N, 2]
+    rover_vel: jax.Array  # [N, 2]
+    poi_pos: jax.Array  # [P, 2]
+    trap_pos: jax.Array  # [T, 2]
+    observed: jax.Array  # [P] bool, POI observed at some step of this episode
+    time: jax.Array  # [] int32, steps taken in this episode
+
+
+def observation_size(params: EnvParams) -> int:
+    """Length O of one rover's observation vector."""
+    return 4 + 2 * params.num_pois + 2 * params.num_traps + 2 * (params.num_rovers - 1)
+
+
+def validate_params(params: EnvParams) -> EnvParams:
+    """Check user-settable values; raise :class:`UserError` naming the bad field. Returns params."""
+    require(params.num_rovers >= 1, f"num_rovers must be >= 1, got {params.num_rovers}")
+    for name in ("num_pois", "num_traps"):
+        value = getattr(params, name)
+        require(value >= 0, f"{name} must be >= 0, got {value}")
+    require(params.max_steps >= 1, f"max_steps must be >= 1, got {params.max_steps}")
+    for name in ("map_size", "rover_radius", "poi_radius", "observe_radius", "dt", "mass"):
+        value = float(getattr(params, name))
+        require(value > 0, f"{name} must be positive, got {value}")
+    trap_radius = np.asarray(params.trap_radius, dtype=float)
+    require(
+        trap_radius.ndim == 0 or trap_radius.shape == (params.num_traps,),
+        f"trap_radius must be a number or one value per trap ({params.num_traps}), "
+        f"got shape {trap_radius.shape}",
+    )
+    require(bool(np.all(trap_radius > 0)), f"trap_radius must be positive, got {trap_radius}")
+    require(0 <= params.damping < 1, f"damping must be in [0, 1), got {params.damping}")
+    return params
+
+
+def trap_radii(params: EnvParams) -> jax.Array:
+    """[T] radius of each trap (``trap_radius`` broadcast)."""
+    return jnp.broadcast_to(jnp.asarray(params.trap_radius, jnp.float32), (params.num_traps,))
+
+
+def _pairwise_dist(a: jax.Array, b: jax.Array) -> jax.Array:
+    """[A, 2], [B, 2] -> [A, B] Euclidean distances."""
+    return jnp.sqrt(jnp.sum(jnp.square(a[:, None, :] - b[None, :, :]), axis=-1))
+
+
+def _first_clear(candidates: jax.Array, obstacles: jax.Array, clearance: jax.Array) -> jax.Array:
+    """[K, C, 2] candidates, [B, 2] obstacles, [B] or [] clearance -> [K, 2].
+
+    For each of K items, the first of its C candidates at least ``clearance`` from every
+    obstacle (the first candidate if none is).
+    """
+    dist = jnp.sqrt(jnp.sum(jnp.square(candidates[:, :, None, :] - obstacles), axis=-1))
+    clear = jnp.all(dist >= clearance, axis=-1)  # [K, C]
+    index = jnp.argmax(clear, axis=-1)  # first True, or 0
+    return jnp.take_along_axis(candidates, index[:, None, None], axis=1)[:, 0]
+
+
+def reset(key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
+    """Start an episode: POIs, then traps clear of POIs, then rovers clear of traps.
+
+    All positions are uniform in the map. A trap keeps ``trap_radius + rover_radius`` away from
+    every POI (so a rover sitting on a POI touches no trap) and a rover starts outside every
+    trap; each uses the first of 16 uniform candidates that satisfies this.
+
+    Returns ``(obs [N, O], state)``.
+    """
+    n, p, t = params.num_rovers, params.num_pois, params.num_traps
+    k_poi, k_trap, k_rover = jax.random.split(key, 3)
+    size = params.map_size
+    poi_pos = jax.random.uniform(k_poi, (p, 2), minval=-size, maxval=size)
+    trap_radius = trap_radii(params)
+    trap_cand = jax.random.uniform(k_trap, (t, _LAYOUT_CANDIDATES, 2), minval=-size, maxval=size)
+    trap_pos = _first_clear(trap_cand, poi_pos, (trap_radius + params.rover_radius)[:, None, None])
+    rover_cand = jax.random.uniform(k_rover, (n, _LAYOUT_CANDIDATES, 2), minval=-size, maxval=size)
+    rover_pos = _first_clear(rover_cand, trap_pos, trap_radius + params.rover_radius)
+    state = EnvState(
+        rover_pos=rover_pos,
+        rover_vel=jnp.zeros((n, 2)),
+        poi_pos=poi_pos,
+        trap_pos=trap_pos,
+        observed=jnp.zeros((p,), bool),
+        time=jnp.zeros((), jnp.int32),
+    )
+    state = state.replace(observed=_observed_now(state, params))
+    return observe(state, params), state
+
+
+def other_rovers(num_rovers: int) -> np.ndarray:
+    """[N, N - 1] int: row i lists every rover but i, in index order."""
+    return np.array(
+        [[j for j in range(num_rovers) if j != i] for i in range(num_rovers)], dtype=np.int32
+    ).reshape(num_rovers, num_rovers - 1)
+
+
+def observe(state: EnvState, params: EnvParams) -> jax.Array:
+    """Observations ``[N, O]``: own velocity, own position, then positions relative to the
+    rover of all POIs, all traps and all other rovers (in index order, skipping itself)."""
+    n = params.num_rovers
+    pos = state.rover_pos
+    rel = lambda targets: (targets[None, :, :] - pos[:, None, :]).reshape(n, -1)  # noqa: E731
+    rel_others = (pos[other_rovers(n)] - pos[:, None, :]).reshape(n, -1)
+    return jnp.concatenate(
+        [state.rover_vel, pos, rel(state.poi_pos), rel(state.trap_pos), rel_others], axis=-1
+    )
+
+
+def _observed_now(state: EnvState, params: EnvParams) -> jax.Array:
+    return state.observed | jnp.any(
+        _pairwise_dist(state.rover_pos, state.poi_pos) < params.observe_radius, axis=0
+    )
+
+
+def contact_forces(pos: jax.Array, params: EnvParams) -> jax.Array:
+    """[N, 2] positions -> [N, 2] total soft contact force on each rover from the others."""
+    n = params.num_rovers
+    delta = pos[:, None, :] - pos[None, :, :]  # [N, N, 2], rover a minus rover b
+    eye = jnp.eye(n, dtype=bool)
+    dist = jnp.where(eye, 1.0, jnp.sqrt(jnp.sum(jnp.square(delta), axis=-1)))
+    k = params.contact_margin
+    penetration = jnp.logaddexp(0.0, -(dist - 2 * params.rover_radius) / k) * k
+    force = params.contact_force * delta / dist[..., None] * penetration[..., None]
+    return jnp.sum(jnp.where(eye[..., None], 0.0, force), axis=1)
+
+
+def check_actions(actions: jax.Array, params: EnvParams) -> None:
+    """Raise :class:`UserError` unless ``actions`` has shape ``[N, 2]`` (checked at trace time)."""
+    expected = (params.num_rovers, ACTION_SIZE)
+    if tuple(actions.shape) != expected:
+        raise UserError(
+            f"actions must have shape {expected} (one 2-D force per rover), got {tuple(actions.shape)}"
+        )
+
+
+def step_env(
+    state: EnvState, actions: jax.Array, params: EnvParams
+) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, jax.Array, dict[str, jax.Array]]:
+    """Advance one step without auto-reset. ``actions`` is ``[N, 2]``, clipped to [-1, 1].
+
+    Returns ``(obs [N, O], state, rewards [N], terminated [], truncated [], info)`` where info
+    holds ``collisions`` [N] (other rovers touched), ``trap_contacts`` [N] (traps touched),
+    ``coverage_distance`` [] (sum over POIs of the nearest rover's distance) and
+    ``pois_observed`` [] (POIs observed so far this episode).
+    """
+    check_actions(actions, params)
+    force = params.sensitivity * jnp.clip(actions, -1.0, 1.0)
+    force = force + contact_forces(state.rover_pos, params)
+    pos = state.rover_pos + state.rover_vel * params.dt
+    vel = state.rover_vel * (1.0 - params.damping) + force / params.mass * params.dt
+    state = state.replace(rover_pos=pos, rover_vel=vel, time=state.time + 1)
+    state = state.replace(observed=_observed_now(state, params))
+
+    rover_dist = _pairwise_dist(pos, pos)
+    touching = (rover_dist < 2 * params.rover_radius) & ~jnp.eye(params.num_rovers, dtype=bool)
+    collisions = jnp.sum(touching, axis=1)
+    in_trap = _pairwise_dist(pos, state.trap_pos) < params.rover_radius + trap_radii(params)
+    trap_contacts = jnp.sum(in_trap, axis=1)
+    coverage = jnp.sum(jnp.min(_pairwise_dist(pos, state.poi_pos), axis=0))
+    rewards = -coverage - params.collision_penalty * collisions - params.trap_penalty * trap_contacts
+
+    truncated = state.time >= params.max_steps
+    terminated = jnp.asarray(params.terminate_on_complete) & jnp.all(state.observed)
+    info = {
+        "collisions": collisions,
+        "trap_contacts": trap_contacts,
+        "coverage_distance": coverage,
+        "pois_observed": jnp.sum(state.observed),
+    }
+    return observe(state, params), state, rewards, terminated, truncated, info
+
+
+def step(
+    key: jax.Array, state: EnvState, actions: jax.Array, params: EnvParams
+) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, jax.Array, dict[str, Any]]:
+    """:func:`step_env` with auto-reset: when the episode ends (terminated or truncated) the
+    returned observation and state are those of a fresh episode drawn with ``key``, and the
+    last observation of the finished episode is kept in ``info["final_obs"]`` [N, O]."""
+    obs, next_state, rewards, terminated, truncated, info = step_env(state, actions, params)
+    done = terminated | truncated
+    reset_obs, reset_state = reset(key, params)
+    next_state = jax.tree.map(lambda r, s: jnp.where(done, r, s), reset_state, next_state)
+    info = {**info, "final_obs": obs}
+    return jnp.where(done, reset_obs, obs), next_state, rewards, terminated, truncated, info

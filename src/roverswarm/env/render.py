@@ -1,0 +1,128 @@
+"""Drawing episodes: rovers with their trails, POIs (filled once observed) and traps.
+
+One :class:`FrameRenderer` (a reused off-screen matplotlib figure) turns a state into an RGB
+array; :func:`save_animation` writes frames as GIF or MP4; :func:`render_episode` is the
+``roverswarm render`` command as a function.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import imageio.v2 as imageio
+import jax
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.patches import Circle
+
+from roverswarm.env.mars import EnvParams, trap_radii
+from roverswarm.errors import UserError
+from roverswarm.evaluate import Rollout, rollout
+from roverswarm.policies import Policy
+
+ANIMATION_SUFFIXES = (".gif", ".mp4")
+_ROVER_COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#d62728", "#e377c2", "#17becf", "#bcbd22")
+
+
+class FrameRenderer:
+    """Draws one frame at a time on an off-screen figure of ``pixels`` x ``pixels``."""
+
+    def __init__(self, params: EnvParams, pixels: int = 480):
+        self.params = params
+        self.figure = Figure(figsize=(pixels / 80, pixels / 80), dpi=80)
+        self.canvas = FigureCanvasAgg(self.figure)
+        self.ax = self.figure.add_axes((0.02, 0.02, 0.96, 0.9))
+
+    def frame(
+        self,
+        trail: np.ndarray,
+        poi_pos: np.ndarray,
+        trap_pos: np.ndarray,
+        observed: np.ndarray,
+        title: str = "",
+    ) -> np.ndarray:
+        """RGB uint8 ``[H, W, 3]`` of the rovers at ``trail[-1]`` with their paths ``trail``
+        ``[t + 1, N, 2]``, POIs ``[P, 2]`` (filled where ``observed`` [P]) and traps ``[T, 2]``."""
+        p, ax = self.params, self.ax
+        ax.clear()
+        size = float(p.map_size)
+        ax.set_xlim(-size * 1.1, size * 1.1)
+        ax.set_ylim(-size * 1.1, size * 1.1)
+        ax.set_aspect("equal")
+        ax.set_xticks([])
+        ax.set_yticks([])
+        ax.set_facecolor("#f3e2cf")  # Martian regolith
+        ax.plot([-size, size, size, -size, -size], [-size, -size, size, size, -size], color="#b08060", lw=1)
+        for (x, y), r in zip(trap_pos, np.asarray(trap_radii(p))):
+            ax.add_patch(Circle((x, y), r, color="#5a3a22", alpha=0.85))
+        for (x, y), seen in zip(poi_pos, observed):
+            ax.add_patch(Circle((x, y), float(p.observe_radius), fill=False, ls="--", color="#2e7d32", lw=0.8))
+            ax.add_patch(Circle((x, y), float(p.poi_radius), color="#2e7d32", fill=bool(seen), lw=1.5))
+        for i in range(trail.shape[1]):
+            color = _ROVER_COLORS[i % len(_ROVER_COLORS)]
+            ax.plot(trail[:, i, 0], trail[:, i, 1], color=color, lw=1.2, alpha=0.7)
+            ax.add_patch(Circle(tuple(trail[-1, i]), float(p.rover_radius), color=color, alpha=0.8))
+        ax.set_title(title, fontsize=10)
+        self.canvas.draw()
+        return np.asarray(self.canvas.buffer_rgba())[..., :3].copy()
+
+
+def check_animation_path(path: Path) -> None:
+    """Raise :class:`UserError` unless ``path`` ends in .gif or .mp4."""
+    if path.suffix.lower() not in ANIMATION_SUFFIXES:
+        raise UserError(f"--out must end in {' or '.join(ANIMATION_SUFFIXES)}, got '{path.name}'")
+
+
+def save_animation(frames: list[np.ndarray], path: Path, fps: int = 8) -> Path:
+    """Write ``frames`` to ``path`` (.gif or .mp4) and the last frame to ``path`` with .png.
+
+    Returns the PNG's path.
+    """
+    path = Path(path)
+    check_animation_path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix.lower() == ".gif":
+        imageio.mimsave(path, frames, duration=1000 / fps, loop=0)
+    else:
+        imageio.mimsave(path, frames, fps=fps, macro_block_size=1)
+    png = path.with_suffix(".png")
+    imageio.imwrite(png, frames[-1])
+    return png
+
+
+@dataclass(frozen=True)
+class EpisodeFrames:
+    """The frames of one episode and its total reward."""
+
+    frames: list[np.ndarray]
+    episode_reward: float
+
+
+def episode_frames(data: Rollout, params: EnvParams, episode: int = 0, label: str = "") -> EpisodeFrames:
+    """Frames of episode ``episode`` of a rollout, one per step
+    (the start included), titled with the step and the reward so far."""
+    renderer = FrameRenderer(params)
+    rewards = data.rewards[episode].sum(axis=-1)  # [T]
+    frames = []
+    for t in range(data.rover_pos.shape[1]):
+        title = f"{label}  step {t}/{params.max_steps}  reward {rewards[:t].sum():.1f}".strip()
+        frames.append(
+            renderer.frame(
+                data.rover_pos[episode, : t + 1],
+                data.poi_pos[episode],
+                data.trap_pos[episode],
+                data.observed[episode, t],
+                title,
+            )
+        )
+    return EpisodeFrames(frames, float(rewards.sum()))
+
+
+def render_episode(params: EnvParams, policy: Policy, out: Path, seed: int = 0, label: str = "") -> Path:
+    """Run one episode of ``policy`` and write it to ``out`` (GIF/MP4) plus a PNG of the last
+    frame. Returns the PNG path."""
+    check_animation_path(Path(out))
+    episode = rollout(policy, jax.random.PRNGKey(seed), params, num_episodes=1)
+    return save_animation(episode_frames(episode, params, 0, label).frames, Path(out))

@@ -1,0 +1,123 @@
+"""Rollouts of a policy over many episodes and the metrics the paper and missions report.
+
+Shape legend: E episodes (parallel environments), T steps per episode, N rovers, P POIs.
+
+Per-episode metrics (:class:`EpisodeStats`):
+
+- ``reward``: sum of every rover's reward over every step (the paper's "episode reward");
+- ``agent_rewards`` [N]: the same per rover;
+- ``collisions``: rover-rover contacts, one per touching pair per step;
+- ``trap_contacts``: rover-trap contacts, one per (rover, trap) pair per step;
+- ``coverage_distance``: sum over POIs of the nearest rover's distance at the last step;
+- ``pois_observed``: POIs observed (a rover within ``observe_radius``) at some step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from roverswarm.env.mars import EnvParams, EnvState, reset, step_env
+from roverswarm.policies import ActFn, Plan, Policy
+
+
+@dataclass(frozen=True)
+class EpisodeStats:
+    """Per-episode metrics, each an array with leading axis E."""
+
+    reward: np.ndarray  # [E]
+    agent_rewards: np.ndarray  # [E, N]
+    collisions: np.ndarray  # [E]
+    trap_contacts: np.ndarray  # [E]
+    coverage_distance: np.ndarray  # [E]
+    pois_observed: np.ndarray  # [E]
+
+    def summary(self) -> dict[str, float]:
+        """Mean over episodes of every scalar metric."""
+        return {
+            "episode_reward": float(self.reward.mean()),
+            "collisions": float(self.collisions.mean()),
+            "trap_contacts": float(self.trap_contacts.mean()),
+            "coverage_distance": float(self.coverage_distance.mean()),
+            "pois_observed": float(self.pois_observed.mean()),
+        }
+
+
+@dataclass(frozen=True)
+class Rollout:
+    """What a rollout saw: the metrics, the fixed layout and the rovers' paths."""
+
+    stats: EpisodeStats
+    rover_pos: np.ndarray  # [E, T + 1, N, 2], including the start
+    poi_pos: np.ndarray  # [E, P, 2]
+    trap_pos: np.ndarray  # [E, T_traps, 2]
+    observed: np.ndarray  # [E, T + 1, P] bool
+    rewards: np.ndarray  # [E, T, N], zero after a termination
+
+
+def _run_episode(act: ActFn, key: jax.Array, obs: jax.Array, state: EnvState, plan: Plan, params: EnvParams):
+    """One episode of at most ``max_steps``; steps after a termination contribute nothing."""
+
+    def body(carry, step_key):
+        obs, state, done = carry
+        actions = act(step_key, obs, state, plan, params)
+        obs, state, rewards, terminated, _, info = step_env(state, actions, params)
+        live = 1.0 - done.astype(jnp.float32)
+        out = {
+            "rewards": rewards * live,
+            "collisions": jnp.sum(info["collisions"]) * live / 2,
+            "trap_contacts": jnp.sum(info["trap_contacts"]) * live,
+            "coverage_distance": info["coverage_distance"],
+            "rover_pos": state.rover_pos,
+            "observed": state.observed,
+        }
+        return (obs, state, done | terminated), out
+
+    carry = (obs, state, jnp.zeros((), bool))
+    _, out = jax.lax.scan(body, carry, jax.random.split(key, params.max_steps))
+    return out
+
+
+@partial(jax.jit, static_argnames=("act",))
+def _rollout_batch(act: ActFn, keys: jax.Array, obs: jax.Array, states: EnvState, plan: Plan, params: EnvParams):
+    return jax.vmap(partial(_run_episode, act, params=params))(keys, obs, states, plan)
+
+
+_reset_batch = jax.jit(jax.vmap(reset, in_axes=(0, None)))
+
+
+def rollout(policy: Policy, key: jax.Array, params: EnvParams, num_episodes: int) -> Rollout:
+    """Run ``policy`` for ``num_episodes`` independent episodes (vmapped) and collect metrics.
+
+    Same key, policy and params => identical results.
+    """
+    reset_key, run_key = jax.random.split(key)
+    obs, states = _reset_batch(jax.random.split(reset_key, num_episodes), params)
+    plan = policy.plan(states, params)
+    out = jax.device_get(
+        _rollout_batch(policy.act, jax.random.split(run_key, num_episodes), obs, states, plan, params)
+    )
+    rewards = out["rewards"]
+    start_pos = np.asarray(states.rover_pos)[:, None]
+    start_observed = np.asarray(states.observed)[:, None]
+    observed = np.concatenate([start_observed, out["observed"]], axis=1)
+    stats = EpisodeStats(
+        reward=rewards.sum(axis=(1, 2)),
+        agent_rewards=rewards.sum(axis=1),
+        collisions=out["collisions"].sum(axis=1),
+        trap_contacts=out["trap_contacts"].sum(axis=1),
+        coverage_distance=out["coverage_distance"][:, -1],
+        pois_observed=observed[:, -1].sum(axis=-1),
+    )
+    return Rollout(
+        stats=stats,
+        rover_pos=np.concatenate([start_pos, out["rover_pos"]], axis=1),
+        poi_pos=np.asarray(states.poi_pos),
+        trap_pos=np.asarray(states.trap_pos),
+        observed=observed,
+        rewards=rewards,
+    )

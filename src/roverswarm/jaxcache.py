@@ -1,0 +1,23 @@
+"""JAX's persistent compilation cache, shared by the CLI and the tests.
+
+JAX compiles once per new shape and configuration; caching compiled programs on disk makes
+the second run of a command (or of the test suite) skip most compilation.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import jax
+
+
+def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
+    """Turn on the on-disk cache at ``path`` (default ``$ROVERSWARM_JAX_CACHE`` or
+    ``~/.cache/roverswarm/jax``). Returns the directory used."""
+    directory = Path(path or os.environ.get("ROVERSWARM_JAX_CACHE") or Path.home() / ".cache" / "roverswarm" / "jax")
+    directory.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(directory))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return directory
