@@ -1,0 +1,49 @@
+"""The command line, in-process: every command works and bad input ends in one line, exit 2."""
+
+from __future__ import annotations
+
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+
+from roverswarm.cli import main
+from roverswarm.env import SCENARIOS, get_scenario
+from roverswarm.env.mars import observation_size
+
+
+def test_scenarios_lists_every_preset_with_sizes(capsys):
+    assert main(["scenarios"]) == 0
+    out = capsys.readouterr().out
+    for name in SCENARIOS:
+        assert name in out
+        assert str(observation_size(get_scenario(name))) in out
+
+
+def test_render_writes_an_animation_and_its_last_frame(tmp_path):
+    out = tmp_path / "ep.gif"
+    assert main(["render", "--scenario", "paper-2", "--policy", "oracle", "--out", str(out), "--seed", "1"]) == 0
+    frames = imageio.mimread(out)
+    assert len(frames) == get_scenario("paper-2").max_steps + 1
+    last = imageio.imread(out.with_suffix(".png"))
+    assert last.ndim == 3 and last.shape[0] > 100 and last.std() > 10
+    assert not np.array_equal(np.asarray(frames[0])[..., :3], np.asarray(frames[-1])[..., :3])
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["render", "--scenario", "paper-9"], "unknown scenario 'paper-9'"),
+        (["render", "--out", "episode.txt"], "--out must end in .gif or .mp4"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_code_2(argv, message, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_unknown_policy_is_refused_by_the_parser():
+    with pytest.raises(SystemExit) as exit_info:
+        main(["render", "--policy", "clever"])
+    assert exit_info.value.code == 2

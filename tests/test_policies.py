@@ -1,0 +1,63 @@
+"""Reference policies: the oracle's assignment is optimal and it beats random by a wide margin."""
+
+from __future__ import annotations
+
+import itertools
+
+import jax
+import numpy as np
+import pytest
+
+from roverswarm.env import get_scenario
+from roverswarm.evaluate import rollout
+from roverswarm.policies import ORACLE, RANDOM, assign_goals
+
+
+def test_hungarian_assignment_matches_brute_force():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        rovers, pois = rng.uniform(-1, 1, (5, 2)), rng.uniform(-1, 1, (5, 2))
+        goals = assign_goals(rovers, pois)
+        best = min(
+            sum(np.linalg.norm(rovers[i] - pois[j]) for i, j in enumerate(perm))
+            for perm in itertools.permutations(range(5))
+        )
+        assert np.linalg.norm(rovers - goals, axis=1).sum() == pytest.approx(best, rel=1e-5)
+        assert sorted(map(tuple, goals.round(6))) == sorted(map(tuple, pois.astype(np.float32).round(6)))
+
+
+def test_assignment_with_more_rovers_than_pois_keeps_the_spare_rover_home():
+    rovers = np.array([[0.0, 0.0], [1.0, 1.0]])
+    goals = assign_goals(rovers, np.array([[0.9, 0.9]]))
+    np.testing.assert_allclose(goals, [[0.0, 0.0], [0.9, 0.9]], atol=1e-6)
+
+
+@pytest.mark.parametrize("scenario", ["paper-2", "paper-3", "paper-4", "paper-5"])
+def test_oracle_beats_random_by_a_wide_margin_with_few_trap_contacts(scenario):
+    params = get_scenario(scenario)
+    key = jax.random.PRNGKey(7)
+    oracle = rollout(ORACLE, key, params, 1000).stats.summary()
+    random = rollout(RANDOM, key, params, 1000).stats.summary()
+    # rewards are negative: the oracle loses less than half of what random loses
+    assert oracle["episode_reward"] > 0.5 * random["episode_reward"], (oracle, random)
+    assert oracle["pois_observed"] > 0.95 * params.num_pois
+    assert oracle["trap_contacts"] < 0.2 * random["trap_contacts"], (oracle, random)
+    rover_steps = params.num_rovers * params.max_steps
+    assert oracle["trap_contacts"] / rover_steps < 0.02, oracle
+
+
+def test_rollouts_are_reproducible():
+    params = get_scenario("paper-2")
+    a = rollout(RANDOM, jax.random.PRNGKey(1), params, 16)
+    b = rollout(RANDOM, jax.random.PRNGKey(1), params, 16)
+    c = rollout(RANDOM, jax.random.PRNGKey(2), params, 16)
+    np.testing.assert_array_equal(a.stats.reward, b.stats.reward)
+    assert not np.array_equal(a.stats.reward, c.stats.reward)
+
+
+def test_episode_reward_is_the_sum_of_per_rover_step_rewards():
+    params = get_scenario("paper-3")
+    result = rollout(RANDOM, jax.random.PRNGKey(0), params, 8)
+    np.testing.assert_allclose(result.stats.reward, result.rewards.sum(axis=(1, 2)), rtol=1e-6)
+    np.testing.assert_allclose(result.stats.agent_rewards.sum(axis=1), result.stats.reward, rtol=1e-5)
+    assert result.rover_pos.shape == (8, params.max_steps + 1, 3, 2)
