@@ -14,3 +14,23 @@ def paper3():
     from roverswarm.env import get_scenario
 
     return get_scenario("paper-3")
+
+
+@pytest.fixture(scope="session")
+def tiny_config():
+    """A small, fast training configuration shared by the trainer tests (one compilation)."""
+    from roverswarm.algos.maddpg import AlgoConfig
+    from roverswarm.train import TrainConfig
+
+    return TrainConfig(
+        scenario="paper-2",
+        learner=AlgoConfig(hidden=(32, 32)),
+        episodes=400,
+        seeds=2,
+        num_envs=4,
+        batch_size=64,
+        buffer_size=4000,
+        warmup=500,
+        log_every=100,
+        checkpoint_every=1,
+    )

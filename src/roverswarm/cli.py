@@ -5,8 +5,9 @@ A :class:`roverswarm.errors.UserError` ends the command with one line on stderr 
 
 from __future__ import annotations
 
+import dataclasses
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Callable, Literal
 
@@ -14,7 +15,8 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
-from roverswarm.errors import UserError
+from roverswarm.errors import RunStopped, UserError, require
+from roverswarm.train import TrainConfig
 
 
 @dataclass(frozen=True)
@@ -34,6 +36,73 @@ class RenderCommand:
     """Output animation, .gif or .mp4; the last frame is also written beside it as .png."""
     seed: int = 0
     """Random seed of the episode layout and of the random policy."""
+
+
+@dataclass(frozen=True)
+class TrainCommand:
+    """Train MADDPG or DDPG on a scenario (seeds vmapped); writes metrics, checkpoints, curves."""
+
+    config: TrainConfig = field(default_factory=TrainConfig)
+    out: Path | None = None
+    """Output folder (config.json, metrics.csv, tb/, checkpoint.npz, learning_curve.png)."""
+    resume: Path | None = None
+    """Continue the interrupted run in this folder; options given with it must match its config."""
+
+
+@dataclass(frozen=True)
+class EvaluateCommand:
+    """Deterministic episodes of a trained run beside the random and oracle policies."""
+
+    run: tyro.conf.Positional[Path]
+    """Run folder written by `roverswarm train --out`."""
+    episodes: int = 1000
+    """Evaluation episodes per policy (the same layouts for every policy)."""
+    seed: int = 0
+    """Seed of the evaluation episodes."""
+
+
+def _changed_fields(config, default, prefix: str = "") -> dict[str, object]:
+    """Fields of ``config`` that differ from ``default`` (nested dataclasses flattened)."""
+    changed = {}
+    for f in dataclasses.fields(config):
+        value, base = getattr(config, f.name), getattr(default, f.name)
+        if dataclasses.is_dataclass(value):
+            changed.update(_changed_fields(value, base))
+        elif value != base:
+            changed[f.name] = value
+    return changed
+
+
+def run_train(cmd: TrainCommand) -> None:
+    from roverswarm.train import CONFIG, config_from_json, train
+
+    if cmd.resume is None:
+        config = cmd.config
+        require(cmd.out is not None or config.episodes <= 10_000, "give --out for runs of more than 10000 episodes, so that they can be resumed")
+        result = train(config, out=cmd.out)
+    else:
+        require((cmd.resume / CONFIG).exists(), f"--resume: '{cmd.resume}' holds no config.json")
+        require(cmd.out in (None, cmd.resume), "--out and --resume name different folders")
+        config = config_from_json((cmd.resume / CONFIG).read_text())
+        for name, value in _changed_fields(cmd.config, TrainConfig()).items():
+            saved = _changed_fields(config, TrainConfig()).get(name, getattr(TrainConfig(), name, None))
+            require(value == saved, f"--resume: the run in '{cmd.resume}' has {name}={saved!r}, not {value!r}")
+        result = train(config, out=cmd.resume, resume=True)
+    last = [r for r in result.metrics if r["episodes"] == result.metrics[-1]["episodes"]]
+    mean = sum(r["episode_reward"] for r in last) / len(last)
+    Console().print(f"done: mean episode reward {mean:.2f} over the last {config.log_every} episodes" + (f"; results in {result.out}" if result.out else ""))
+
+
+def run_evaluate(cmd: EvaluateCommand) -> None:
+    from roverswarm.evaluate import evaluate_run
+
+    rows = evaluate_run(cmd.run, cmd.episodes, cmd.seed)
+    table = Table(title=f"{cmd.run}: {cmd.episodes} deterministic episodes, seed {cmd.seed}")
+    for column in rows[0]:
+        table.add_column(column.replace("_", " "), justify="left" if column == "policy" else "right", no_wrap=column == "policy")
+    for row in rows:
+        table.add_row(*(v if isinstance(v, str) else f"{v:.3f}" for v in row.values()))
+    Console().print(table)
 
 
 def run_scenarios(cmd: ScenariosCommand) -> None:
@@ -62,6 +131,8 @@ def run_render(cmd: RenderCommand) -> None:
 COMMANDS: dict[str, tuple[type, Callable]] = {
     "scenarios": (ScenariosCommand, run_scenarios),
     "render": (RenderCommand, run_render),
+    "train": (TrainCommand, run_train),
+    "evaluate": (EvaluateCommand, run_evaluate),
 }
 
 
@@ -70,6 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     cmd = tyro.extras.subcommand_cli_from_dict(
         {name: Annotated[cls, tyro.conf.arg(name=name)] for name, (cls, _) in COMMANDS.items()},
         prog="roverswarm",
+        config=(tyro.conf.OmitArgPrefixes,),
         description="Multi-agent reinforcement learning of rover swarms exploring a planetary surface.",
         args=argv,
     )
@@ -82,6 +154,9 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as error:
         print(f"roverswarm: error: {error}", file=sys.stderr)
         return 2
+    except RunStopped as stopped:
+        print(f"roverswarm: stopped: {stopped}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -16,3 +16,7 @@ def require(condition: bool, message: str) -> None:
     """Raise :class:`UserError` with ``message`` unless ``condition`` holds."""
     if not condition:
         raise UserError(message)
+
+
+class RunStopped(RuntimeError):
+    """A run stopped before its end (diverged, or interrupted); the message says what was kept."""

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from roverswarm.env.mars import EnvParams, EnvState, reset, step_env
+from roverswarm.errors import require
 from roverswarm.policies import ActFn, Plan, Policy
 
 
@@ -59,12 +60,12 @@ class Rollout:
     rewards: np.ndarray  # [E, T, N], zero after a termination
 
 
-def _run_episode(act: ActFn, key: jax.Array, obs: jax.Array, state: EnvState, plan: Plan, params: EnvParams):
+def _run_episode(act: ActFn, key: jax.Array, obs: jax.Array, state: EnvState, plan: Plan, weights, params: EnvParams):
     """One episode of at most ``max_steps``; steps after a termination contribute nothing."""
 
     def body(carry, step_key):
         obs, state, done = carry
-        actions = act(step_key, obs, state, plan, params)
+        actions = act(step_key, obs, state, plan, weights, params)
         obs, state, rewards, terminated, _, info = step_env(state, actions, params)
         live = 1.0 - done.astype(jnp.float32)
         out = {
@@ -83,8 +84,8 @@ def _run_episode(act: ActFn, key: jax.Array, obs: jax.Array, state: EnvState, pl
 
 
 @partial(jax.jit, static_argnames=("act",))
-def _rollout_batch(act: ActFn, keys: jax.Array, obs: jax.Array, states: EnvState, plan: Plan, params: EnvParams):
-    return jax.vmap(partial(_run_episode, act, params=params))(keys, obs, states, plan)
+def _rollout_batch(act: ActFn, keys: jax.Array, obs: jax.Array, states: EnvState, plan: Plan, weights, params: EnvParams):
+    return jax.vmap(partial(_run_episode, act, weights=weights, params=params))(keys, obs, states, plan)
 
 
 _reset_batch = jax.jit(jax.vmap(reset, in_axes=(0, None)))
@@ -99,7 +100,7 @@ def rollout(policy: Policy, key: jax.Array, params: EnvParams, num_episodes: int
     obs, states = _reset_batch(jax.random.split(reset_key, num_episodes), params)
     plan = policy.plan(states, params)
     out = jax.device_get(
-        _rollout_batch(policy.act, jax.random.split(run_key, num_episodes), obs, states, plan, params)
+        _rollout_batch(policy.act, jax.random.split(run_key, num_episodes), obs, states, plan, policy.weights, params)
     )
     rewards = out["rewards"]
     start_pos = np.asarray(states.rover_pos)[:, None]
@@ -121,3 +122,35 @@ def rollout(policy: Policy, key: jax.Array, params: EnvParams, num_episodes: int
         observed=observed,
         rewards=rewards,
     )
+
+
+def normalized_score(reward: float, random_reward: float, oracle_reward: float) -> float:
+    """``(R - R_random) / (R_oracle - R_random)``: 0 is random, 1 is the oracle."""
+    return (reward - random_reward) / (oracle_reward - random_reward)
+
+
+def evaluate_run(out, episodes: int = 1000, seed: int = 0) -> list[dict[str, float | str]]:
+    """Deterministic episodes of every seed's trained policy in run folder ``out``, beside the
+    random and oracle policies on the same episodes (same layouts), with the normalised score.
+
+    Returns one row per policy: ``policy``, the :meth:`EpisodeStats.summary` metrics and
+    ``normalized_score``.
+    """
+    from roverswarm.env.scenarios import get_scenario
+    from roverswarm.policies import ORACLE, RANDOM, trained_policy
+    from roverswarm.train import load_run
+
+    require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
+    config, learner = load_run(out)
+    params = get_scenario(config.scenario)
+    key = jax.random.PRNGKey(seed)
+    policies = [
+        trained_policy(config.learner, jax.tree.map(lambda x: x[s], learner.actor), f"{config.learner.algo} seed {s}")
+        for s in range(config.seeds)
+    ]
+    results = {p.name: rollout(p, key, params, episodes).stats.summary() for p in (RANDOM, ORACLE, *policies)}
+    low, high = results["random"]["episode_reward"], results["oracle"]["episode_reward"]
+    return [
+        {"policy": name, **summary, "normalized_score": normalized_score(summary["episode_reward"], low, high)}
+        for name, summary in results.items()
+    ]

@@ -4,8 +4,10 @@ A :class:`Policy` has two parts:
 
 - ``plan(states, params) -> plan``: host-side, once per episode, on a batch of freshly reset
   states ``[E, ...]``; may use NumPy/SciPy. Returns a pytree with leading axis E (or None).
-- ``act(key, obs [N, O], state, plan, params) -> actions [N, 2]``: jittable, one environment;
-  rollouts vmap it over environments.
+- ``act(key, obs [N, O], state, plan, weights, params) -> actions [N, 2]``: jittable, one
+  environment; rollouts vmap it over environments. ``weights`` is the policy's own pytree
+  (network parameters of a trained policy; None for the reference policies), passed as data
+  so that a new set of weights does not recompile the rollout.
 
 The oracle assigns rovers to POIs by the Hungarian method (minimum total distance, SciPy's
 ``linear_sum_assignment``) and then drives each rover to its POI with a go-to-goal
@@ -17,6 +19,7 @@ brush each other or a crater now and then (about 0.3 trap contacts per episode o
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -25,10 +28,11 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from roverswarm.algos.maddpg import AlgoConfig, act
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, EnvState, other_rovers, trap_radii
 
 Plan = Any
-ActFn = Callable[[jax.Array, jax.Array, EnvState, Plan, EnvParams], jax.Array]
+ActFn = Callable[[jax.Array, jax.Array, EnvState, Plan, Any, EnvParams], jax.Array]
 PlanFn = Callable[[EnvState, EnvParams], Plan]
 
 
@@ -43,12 +47,13 @@ class Policy:
     name: str
     act: ActFn
     plan: PlanFn = _no_plan
+    weights: Any = None
 
 
 # ----------------------------------------------------------------------------- random
 
 
-def _random_act(key: jax.Array, obs: jax.Array, state: EnvState, plan: Plan, params: EnvParams) -> jax.Array:
+def _random_act(key: jax.Array, obs: jax.Array, state: EnvState, plan: Plan, weights: Any, params: EnvParams) -> jax.Array:
     return jax.random.uniform(key, (params.num_rovers, ACTION_SIZE), minval=-1.0, maxval=1.0)
 
 
@@ -114,7 +119,7 @@ def _steer_around(pos: jax.Array, vel_des: jax.Array, goal: jax.Array, obstacles
     return heading * speed
 
 
-def _oracle_act(key: jax.Array, obs: jax.Array, state: EnvState, goal: jax.Array, params: EnvParams) -> jax.Array:
+def _oracle_act(key: jax.Array, obs: jax.Array, state: EnvState, goal: jax.Array, weights: Any, params: EnvParams) -> jax.Array:
     decay = 1.0 - params.damping
     gain = params.sensitivity / params.mass * params.dt  # velocity change per unit action
     # the current velocity moves the rover this step whatever we do; steer from there
@@ -141,3 +146,20 @@ def _clip_norm(x: jax.Array, max_norm: float, ord: float = 2) -> jax.Array:
 ORACLE = Policy("oracle", _oracle_act, _oracle_plan)
 
 REFERENCE_POLICIES: dict[str, Policy] = {p.name: p for p in (RANDOM, ORACLE)}
+
+
+# ----------------------------------------------------------------------------- trained
+
+
+@functools.lru_cache(maxsize=None)
+def _deterministic_act(config: AlgoConfig) -> ActFn:
+    # one function object per learner config, so rollouts of new weights reuse the compiled code
+    def act_fn(key, obs, state, plan, weights, params):
+        return act(config, weights, obs)
+
+    return act_fn
+
+
+def trained_policy(config: AlgoConfig, actor_params, name: str = "trained") -> Policy:
+    """The deterministic policy (no exploration noise) of trained actors [N, ...]."""
+    return Policy(name, _deterministic_act(config), weights=actor_params)

@@ -1,0 +1,1 @@
+"""Learners: MADDPG (centralised critics) and DDPG (local critics) sharing one update."""

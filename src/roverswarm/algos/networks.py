@@ -1,0 +1,37 @@
+"""Actor and critic networks: two hidden ReLU layers (64 units by default), Flax linen.
+
+Parameters of all agents are stacked along a leading agent axis and applied with
+``jax.vmap``; every rover has the same observation and action sizes.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+
+class MLP(nn.Module):
+    """Dense ReLU layers of sizes ``hidden``, then a linear output of size ``out``."""
+
+    hidden: Sequence[int]
+    out: int
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        for width in self.hidden:
+            x = nn.relu(nn.Dense(width)(x))
+        return nn.Dense(self.out)(x)
+
+
+def actor_forward(net: MLP, params, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Deterministic action ``tanh(pre)`` in [-1, 1] and the pre-activation ``pre``."""
+    pre = net.apply(params, obs)
+    return jnp.tanh(pre), pre
+
+
+def critic_forward(net: MLP, params, inputs: jax.Array) -> jax.Array:
+    """Q-value [...] of the concatenated critic inputs [..., D]."""
+    return net.apply(params, inputs)[..., 0]

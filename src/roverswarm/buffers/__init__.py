@@ -1,0 +1,5 @@
+"""Replay buffers with one interface: uniform (reference MADDPG) and ranked (experience sample optimizer)."""
+
+from roverswarm.buffers.uniform import Buffer, BufferState, Sample, Transition, uniform_buffer
+
+__all__ = ["Buffer", "BufferState", "Sample", "Transition", "uniform_buffer"]

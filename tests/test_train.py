@@ -1,0 +1,179 @@
+"""The trainer: outputs, determinism, resume after SIGKILL and Ctrl-C, divergence, bad input, learning."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from roverswarm.algos.maddpg import AlgoConfig
+from roverswarm.cli import main
+from roverswarm.errors import RunStopped, UserError
+from roverswarm.evaluate import evaluate_run
+from roverswarm.train import CHECKPOINT, TrainConfig, config_from_json, load_run, read_metrics, train
+
+TIMELESS = lambda rows: [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rows]  # noqa: E731
+
+
+def cli_args(config: TrainConfig) -> list[str]:
+    """The `roverswarm train` flags that reproduce ``config``."""
+    args = []
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if f.name == "learner":
+            args += cli_args(value)
+        elif isinstance(value, tuple):
+            args += [f"--{f.name.replace('_', '-')}", *map(str, value)]
+        else:
+            args += [f"--{f.name.replace('_', '-')}", str(value)]
+    return args
+
+
+@pytest.fixture(scope="module")
+def unbroken(tiny_config, tmp_path_factory):
+    out = tmp_path_factory.mktemp("unbroken")
+    return train(tiny_config, out=out, progress=False)
+
+
+def test_outputs_of_a_run(unbroken, tiny_config):
+    out = unbroken.out
+    assert config_from_json((out / "config.json").read_text()) == tiny_config
+    rows = read_metrics(out / "metrics.csv")
+    chunks = tiny_config.episodes // tiny_config.log_every
+    assert len(rows) == chunks * tiny_config.seeds
+    assert [r["episodes"] for r in rows[:: tiny_config.seeds]] == [100.0 * (c + 1) for c in range(chunks)]
+    for column in ("episode_reward", "agent_0_reward", "agent_1_reward", "collisions", "trap_contacts", "coverage_distance", "wall_seconds"):
+        assert column in rows[0]
+    for r in rows:  # the episode reward is the sum of the agents' rewards
+        assert r["episode_reward"] == pytest.approx(r["agent_0_reward"] + r["agent_1_reward"], rel=1e-4)
+    assert (out / "learning_curve.png").stat().st_size > 1000
+    assert any(p.name.startswith("events") for p in (out / "tb").iterdir())
+    assert (out / CHECKPOINT).exists() and not list(out.glob("*.tmp"))
+
+
+def test_same_seed_same_numbers_different_seeds_different_networks(unbroken, tiny_config):
+    again = train(tiny_config, progress=False)
+    assert TIMELESS(again.metrics) == TIMELESS(unbroken.metrics)
+    seed0, seed1 = (jax.tree.map(lambda x: np.asarray(x[s]), unbroken.learner.actor) for s in (0, 1))
+    assert not all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(seed0), jax.tree.leaves(seed1)))
+
+
+def test_resume_after_sigkill_gives_the_numbers_of_an_unbroken_run(unbroken, tiny_config, tmp_path):
+    out = tmp_path / "killed"
+    config = dataclasses.replace(tiny_config, episodes=2000)
+    reference = train(config, progress=False)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    process = subprocess.Popen([sys.executable, "-m", "roverswarm.cli", "train", *cli_args(config), "--out", str(out)], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while not (out / "metrics.csv").exists() and time.time() < deadline and process.poll() is None:
+        time.sleep(0.01)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    done = len(read_metrics(out / "metrics.csv")) // config.seeds
+    assert 0 < done < config.episodes // config.log_every, "the run must be killed mid-way"
+    assert main(["train", "--resume", str(out)]) == 0
+    assert TIMELESS(read_metrics(out / "metrics.csv")) == TIMELESS(reference.metrics)
+
+
+def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(tiny_config, tmp_path):
+    out = tmp_path / "interrupted"
+    config = dataclasses.replace(tiny_config, episodes=4000, checkpoint_every=1000)
+    process = subprocess.Popen([sys.executable, "-m", "roverswarm.cli", "train", *cli_args(config), "--out", str(out)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while not (out / "tb").exists() and time.time() < deadline:
+        time.sleep(0.01)
+    time.sleep(0.5)
+    process.send_signal(signal.SIGINT)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 1, err
+    assert "interrupted at episode" in err and "--resume" in err
+    rows = read_metrics(out / "metrics.csv")
+    assert 0 < len(rows) < config.episodes // config.log_every * config.seeds
+    assert main(["train", "--resume", str(out)]) == 0
+    assert read_metrics(out / "metrics.csv")[-1]["episodes"] == config.episodes
+
+
+def test_non_finite_losses_stop_the_run_and_keep_the_last_good_checkpoint(tiny_config, tmp_path, monkeypatch):
+    import roverswarm.train as train_module
+
+    real = train_module.run_chunk
+    calls = []
+
+    def poisoned(config, params, buffer, runner):
+        runner, metrics = real(config, params, buffer, runner)
+        calls.append(1)
+        if len(calls) == 3:
+            metrics = {**metrics, "critic_loss": metrics["critic_loss"] * np.nan}
+        return runner, metrics
+
+    monkeypatch.setattr(train_module, "run_chunk", poisoned)
+    out = tmp_path / "diverged"
+    with pytest.raises(RunStopped, match="non-finite loss or reward at episode 300.*last good checkpoint"):
+        train(tiny_config, out=out, progress=False)
+    with np.load(out / CHECKPOINT) as data:
+        assert int(data["episodes"]) == 200
+    assert len(read_metrics(out / "metrics.csv")) == 2 * tiny_config.seeds
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--batch-size", "2000", "--buffer-size", "1000"], "--batch-size (2000) must not exceed --buffer-size (1000)"),
+        (["--num-envs", "3"], "must be a multiple of --num-envs (3)"),
+        (["--scenario", "mars-9"], "unknown scenario 'mars-9'"),
+        (["--gamma", "1.5"], "--gamma must be in [0, 1]"),
+    ],
+)
+def test_bad_training_input_is_one_line_and_exit_2(argv, message, capsys, tmp_path):
+    assert main(["train", *argv, "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1
+
+
+def test_unknown_algorithm_is_refused_with_exit_2():
+    with pytest.raises(SystemExit) as exit_info:
+        main(["train", "--algo", "qmix"])
+    assert exit_info.value.code == 2
+
+
+def test_resume_with_a_different_config_is_refused(unbroken, capsys):
+    assert main(["train", "--resume", str(unbroken.out), "--scenario", "paper-5"]) == 2
+    assert "has scenario='paper-2', not 'paper-5'" in capsys.readouterr().err
+    assert main(["train", "--out", str(unbroken.out), "--scenario", "paper-2"]) == 2
+    assert "already holds a run" in capsys.readouterr().err
+
+
+def test_evaluate_reports_policies_beside_random_and_oracle(unbroken, capsys):
+    rows = evaluate_run(unbroken.out, episodes=50)
+    names = [r["policy"] for r in rows]
+    assert names == ["random", "oracle", "maddpg seed 0", "maddpg seed 1"]
+    assert rows[0]["normalized_score"] == 0.0 and rows[1]["normalized_score"] == 1.0
+    config, learner = load_run(unbroken.out)
+    np.testing.assert_array_equal(jax.tree.leaves(learner.actor)[0], jax.tree.leaves(unbroken.learner.actor)[0])
+    assert main(["evaluate", str(unbroken.out), "--episodes", "50"]) == 0
+    out = capsys.readouterr().out
+    assert "oracle" in out and "maddpg seed 1" in out and "1.000" in out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("algo", ["maddpg", "ddpg"])
+def test_a_short_run_learns_to_beat_random_by_a_wide_margin(algo, tmp_path):
+    config = TrainConfig(
+        scenario="paper-2", learner=AlgoConfig(algo=algo), episodes=4000, seeds=2, batch_size=256, buffer_size=50_000
+    )
+    result = train(config, out=tmp_path, progress=False)
+    rows = evaluate_run(tmp_path, episodes=500)
+    scores = [r["normalized_score"] for r in rows[2:]]
+    assert min(scores) > 0.3, rows
+    random_reward = rows[0]["episode_reward"]
+    assert all(r["episode_reward"] > 0.7 * random_reward for r in rows[2:]), rows
+    assert result.metrics[-1]["episode_reward"] > result.metrics[0]["episode_reward"]
