@@ -172,8 +172,8 @@ def test_a_short_run_learns_to_beat_random_by_a_wide_margin(algo, tmp_path):
     )
     result = train(config, out=tmp_path, progress=False)
     rows = evaluate_run(tmp_path, episodes=500)
+    # a score above 0.3 closes 30% of the random-to-oracle gap (about 20 reward per episode
+    # on paper-2, over ten standard errors of random's mean over 500 episodes)
     scores = [r["normalized_score"] for r in rows[2:]]
     assert min(scores) > 0.3, rows
-    random_reward = rows[0]["episode_reward"]
-    assert all(r["episode_reward"] > 0.7 * random_reward for r in rows[2:]), rows
     assert result.metrics[-1]["episode_reward"] > result.metrics[0]["episode_reward"]

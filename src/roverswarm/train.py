@@ -174,8 +174,7 @@ def collect(config: TrainConfig, params: EnvParams, actor, key: jax.Array):
 
 def learn(config: TrainConfig, buffer: Buffer, learner: LearnerState, buffer_state: BufferState, key: jax.Array):
     """One update of every agent of one seed from its replay."""
-    k_sample, _ = jax.random.split(key)
-    sample = buffer.sample(buffer_state, k_sample)
+    sample = buffer.sample(buffer_state, key)
     learner, info = update(config.learner, learner, sample.batch)
     buffer_state = buffer.set_priorities(buffer_state, sample.indices, info["td_loss"])
     return learner, buffer_state, {k: v for k, v in info.items() if k != "td_loss"}

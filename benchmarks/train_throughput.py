@@ -1,0 +1,107 @@
+"""Training throughput: seconds per 1000 episodes, and how much of it is the update itself.
+
+For N = 2..5 (``paper-N``) and both algorithms, at the default settings (one seed, 20
+parallel environments, batch 1024, replay 1e6, one update of every agent per 100
+environment steps, i.e. 250 updates per 1000 episodes), in one run:
+
+* ``s/1000 ep``: wall seconds of one jitted training chunk of 1000 episodes (environment,
+  replay writes and samples, updates), timed after the warm-up so every chunk has its 250
+  updates; the median of ``--chunks`` chunks.
+* ``update``: the bare jitted update of all agents on a fixed batch (250 of them in one
+  ``lax.scan``), i.e. the floor the chunk cannot go below.
+* ``overhead``: ``1 - 250 * update / chunk``, the share of everything else. Target <= 25%.
+* ``vs reference``: the reference implementations' per-agent Python loop runs at about 90 s
+  per 1000 episodes for N = 3 on this machine (one environment, one update per 100 steps);
+  the ratio 90 / ours for N = 3. Target >= 10x.
+
+Run ``python benchmarks/train_throughput.py`` (``--quick``: N = 3 only, fewer chunks).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+
+from roverswarm.algos.maddpg import AlgoConfig, init_learner, update
+from roverswarm.buffers.uniform import Transition
+from roverswarm.env.mars import ACTION_SIZE, observation_size
+from roverswarm.jaxcache import enable_compilation_cache
+from roverswarm.train import TrainConfig, init_runner, make_buffer, run_chunk, validate
+
+REFERENCE_SECONDS_N3 = 90.0
+
+
+def chunk_seconds(config: TrainConfig, chunks: int) -> float:
+    """Median wall seconds of a 1000-episode chunk once updates run in every iteration."""
+    params = validate(config)
+    buffer = make_buffer(config, params)
+    runner = init_runner(config, params, buffer)
+    warm_chunks = -(-config.warmup // (config.log_every * params.max_steps)) + 1
+    for _ in range(warm_chunks):  # compile, and fill the replay past the warm-up
+        runner, metrics = run_chunk(config, params, buffer, runner)
+    jax.block_until_ready(metrics)
+    times = []
+    for _ in range(chunks):
+        start = time.perf_counter()
+        runner, metrics = run_chunk(config, params, buffer, runner)
+        jax.block_until_ready(metrics)
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def update_seconds(config: TrainConfig, count: int) -> float:
+    """Seconds of one bare update of all agents (median over repeats of ``count`` scanned updates)."""
+    params = validate(config)
+    n, o, b = params.num_rovers, observation_size(params), config.batch_size
+    key = jax.random.PRNGKey(0)
+    learner = init_learner(key, config.learner, n, o)
+    batch = Transition(
+        obs=jax.random.normal(key, (n, b, n, o)),
+        actions=jax.random.uniform(key, (n, b, n, ACTION_SIZE), minval=-1, maxval=1),
+        rewards=jax.random.normal(key, (n, b, n)),
+        next_obs=jax.random.normal(key, (n, b, n, o)),
+        terminated=jnp.zeros((n, b), bool),
+    )
+
+    @jax.jit
+    def many(learner):
+        return jax.lax.scan(lambda s, _: (update(config.learner, s, batch)[0], None), learner, None, length=count)[0]
+
+    jax.block_until_ready(many(learner))
+    times = []
+    for _ in range(3):
+        start = time.perf_counter()
+        jax.block_until_ready(many(learner))
+        times.append(time.perf_counter() - start)
+    return statistics.median(times) / count
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="N = 3 only and fewer timed chunks")
+    parser.add_argument("--chunks", type=int, default=3, help="timed chunks per configuration")
+    args = parser.parse_args()
+    enable_compilation_cache()
+    rover_counts = (3,) if args.quick else (2, 3, 4, 5)
+    chunks = 1 if args.quick else args.chunks
+    print(f"jax {jax.__version__} | {jax.devices()[0]} | defaults: 1 seed, 20 envs, batch 1024, replay 1e6\n")
+    print("| N | algo | s/1000 ep | update (ms) | updates/1000 ep | overhead | vs reference |")
+    print("|---|---|---|---|---|---|---|")
+    for n in rover_counts:
+        for algo in ("maddpg", "ddpg"):
+            config = TrainConfig(scenario=f"paper-{n}", learner=AlgoConfig(algo=algo))
+            params = validate(config)
+            updates = config.log_every * params.max_steps // config.update_every
+            chunk = chunk_seconds(config, chunks)
+            bare = update_seconds(config, updates)
+            overhead = 1.0 - updates * bare / chunk
+            versus = f"{REFERENCE_SECONDS_N3 / chunk:.0f}x" if n == 3 else "-"
+            print(f"| {n} | {algo} | {chunk:.2f} | {bare * 1e3:.2f} | {updates} | {overhead:.0%} | {versus} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
