@@ -61,16 +61,13 @@ class EvaluateCommand:
     """Seed of the evaluation episodes."""
 
 
-def _changed_fields(config, default, prefix: str = "") -> dict[str, object]:
-    """Fields of ``config`` that differ from ``default`` (nested dataclasses flattened)."""
-    changed = {}
+def _flat_fields(config) -> dict[str, object]:
+    """Every leaf field of a (nested) config dataclass, by name."""
+    flat: dict[str, object] = {}
     for f in dataclasses.fields(config):
-        value, base = getattr(config, f.name), getattr(default, f.name)
-        if dataclasses.is_dataclass(value):
-            changed.update(_changed_fields(value, base))
-        elif value != base:
-            changed[f.name] = value
-    return changed
+        value = getattr(config, f.name)
+        flat.update(_flat_fields(value) if dataclasses.is_dataclass(value) else {f.name: value})
+    return flat
 
 
 def run_train(cmd: TrainCommand) -> None:
@@ -84,9 +81,10 @@ def run_train(cmd: TrainCommand) -> None:
         require((cmd.resume / CONFIG).exists(), f"--resume: '{cmd.resume}' holds no config.json")
         require(cmd.out in (None, cmd.resume), "--out and --resume name different folders")
         config = config_from_json((cmd.resume / CONFIG).read_text())
-        for name, value in _changed_fields(cmd.config, TrainConfig()).items():
-            saved = _changed_fields(config, TrainConfig()).get(name, getattr(TrainConfig(), name, None))
-            require(value == saved, f"--resume: the run in '{cmd.resume}' has {name}={saved!r}, not {value!r}")
+        given, defaults, saved = (_flat_fields(c) for c in (cmd.config, TrainConfig(), config))
+        for name, value in given.items():  # options given with --resume must match the run
+            if value != defaults[name]:
+                require(value == saved[name], f"--resume: the run in '{cmd.resume}' has {name}={saved[name]!r}, not {value!r}")
         result = train(config, out=cmd.resume, resume=True)
     last = [r for r in result.metrics if r["episodes"] == result.metrics[-1]["episodes"]]
     mean = sum(r["episode_reward"] for r in last) / len(last)

@@ -28,6 +28,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import serialization, struct
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from tensorboardX import SummaryWriter
 
 from roverswarm.algos.maddpg import ALGOS, AlgoConfig, LearnerState, act, init_learner, update
 from roverswarm.buffers.uniform import Buffer, BufferState, Transition, uniform_buffer
@@ -435,16 +437,10 @@ def train(config: TrainConfig, out: Path | None = None, resume: bool = False, pr
             )
             out.mkdir(parents=True, exist_ok=True)
         (out / CONFIG).write_text(config_to_json(config))
-    writer = None
-    if out is not None:
-        from tensorboardX import SummaryWriter
-
-        writer = SummaryWriter(str(out / "tb"))
+    writer = SummaryWriter(str(out / "tb")) if out is not None else None
 
     chunks = config.episodes // config.log_every
     first = int(runner.episodes) // config.log_every
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
     bar = Progress(
         TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("episodes"),
         TextColumn("reward {task.fields[reward]}"), TextColumn("{task.fields[rate]} ep/s"), TimeRemainingColumn(),
