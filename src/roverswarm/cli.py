@@ -16,7 +16,7 @@ from rich.console import Console
 from rich.table import Table
 
 from roverswarm.errors import RunStopped, UserError, require
-from roverswarm.train import TrainConfig
+from roverswarm.train import CONFIG, TrainConfig, config_from_json, train
 
 
 @dataclass(frozen=True)
@@ -71,8 +71,6 @@ def _flat_fields(config) -> dict[str, object]:
 
 
 def run_train(cmd: TrainCommand) -> None:
-    from roverswarm.train import CONFIG, config_from_json, train
-
     if cmd.resume is None:
         config = cmd.config
         require(cmd.out is not None or config.episodes <= 10_000, "give --out for runs of more than 10000 episodes, so that they can be resumed")

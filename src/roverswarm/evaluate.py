@@ -23,7 +23,9 @@ import numpy as np
 
 from roverswarm.env.mars import EnvParams, EnvState, reset, step_env
 from roverswarm.errors import require
-from roverswarm.policies import ActFn, Plan, Policy
+from roverswarm.env.scenarios import get_scenario
+from roverswarm.policies import ORACLE, RANDOM, ActFn, Plan, Policy, trained_policy
+from roverswarm.train import load_run
 
 
 @dataclass(frozen=True)
@@ -136,10 +138,6 @@ def evaluate_run(out, episodes: int = 1000, seed: int = 0) -> list[dict[str, flo
     Returns one row per policy: ``policy``, the :meth:`EpisodeStats.summary` metrics and
     ``normalized_score``.
     """
-    from roverswarm.env.scenarios import get_scenario
-    from roverswarm.policies import ORACLE, RANDOM, trained_policy
-    from roverswarm.train import load_run
-
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
     config, learner = load_run(out)
     params = get_scenario(config.scenario)

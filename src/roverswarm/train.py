@@ -226,7 +226,6 @@ def run_chunk(config: TrainConfig, params: EnvParams, buffer: Buffer, runner: Ru
     count = jnp.maximum(updated.sum(), 1.0)
     for k, v in info.items():  # [I, S, N], averaged over the iterations that updated
         metrics[k] = (v * updated[:, None, None]).sum(axis=0) / count
-    metrics["updates"] = updated.sum() * (config.num_envs * params.max_steps // config.update_every)
     return runner, metrics
 
 
@@ -446,43 +445,45 @@ def train(config: TrainConfig, out: Path | None = None, resume: bool = False, pr
         TextColumn("reward {task.fields[reward]}"), TextColumn("{task.fields[rate]} ep/s"), TimeRemainingColumn(),
         disable=not progress,
     )
-    with bar, _StopFlag() as stop:
-        task = bar.add_task(
-            f"{config.learner.algo} {config.scenario}", total=config.episodes, completed=first * config.log_every,
-            reward="-", rate="-",
-        )
-        for chunk in range(first, chunks):
-            start = time.perf_counter()
-            runner, metrics = run_chunk(config, params, buffer, runner)
-            metrics = jax.device_get(metrics)
-            seconds = time.perf_counter() - start
-            episodes = (chunk + 1) * config.log_every
-            new_rows = metric_rows(config, metrics, episodes, seconds)
-            finite = all(math.isfinite(r[k]) for r in new_rows for k in ("episode_reward", "critic_loss", "actor_loss"))
-            if not finite:
-                kept = f"the last good checkpoint in '{out}' is kept" if out is not None else "nothing was saved"
-                raise RunStopped(f"non-finite loss or reward at episode {episodes}; stopping ({kept}). Try smaller learning rates.")
-            rows.extend(new_rows)
-            if writer is not None:
-                for r in new_rows:
-                    for k, v in r.items():
-                        if k not in ("seed", "episodes"):
-                            writer.add_scalar(f"seed_{int(r['seed'])}/{k}", v, episodes)
-            bar.update(
-                task, completed=episodes, reward=f"{np.mean(metrics['episode_reward']):.1f}",
-                rate=f"{config.log_every / seconds:,.0f}",
+    try:
+        with bar, _StopFlag() as stop:
+            task = bar.add_task(
+                f"{config.learner.algo} {config.scenario}", total=config.episodes, completed=first * config.log_every,
+                reward="-", rate="-",
             )
-            last = chunk + 1 == chunks
-            if out is not None and (last or stop.raised or (chunk + 1 - first) % config.checkpoint_every == 0):
-                save_checkpoint(out / CHECKPOINT, runner)
-                _write_metrics(out / METRICS, rows)
-            if stop.raised and not last:
-                if out is not None:
-                    plot_learning_curve(rows, out / "learning_curve.png", f"{config.learner.algo} on {config.scenario}")
-                where = f"checkpoint saved; continue with: roverswarm train --resume {out}" if out else "nothing saved (no --out)"
-                raise RunStopped(f"interrupted at episode {episodes}; {where}")
-    if writer is not None:
-        writer.close()
+            for chunk in range(first, chunks):
+                start = time.perf_counter()
+                runner, metrics = run_chunk(config, params, buffer, runner)
+                metrics = jax.device_get(metrics)
+                seconds = time.perf_counter() - start
+                episodes = (chunk + 1) * config.log_every
+                new_rows = metric_rows(config, metrics, episodes, seconds)
+                finite = all(math.isfinite(r[k]) for r in new_rows for k in ("episode_reward", "critic_loss", "actor_loss"))
+                if not finite:
+                    kept = f"the last good checkpoint in '{out}' is kept" if out is not None else "nothing was saved"
+                    raise RunStopped(f"non-finite loss or reward at episode {episodes}; stopping ({kept}). Try smaller learning rates.")
+                rows.extend(new_rows)
+                if writer is not None:
+                    for r in new_rows:
+                        for k, v in r.items():
+                            if k not in ("seed", "episodes"):
+                                writer.add_scalar(f"seed_{int(r['seed'])}/{k}", v, episodes)
+                bar.update(
+                    task, completed=episodes, reward=f"{np.mean(metrics['episode_reward']):.1f}",
+                    rate=f"{config.log_every / seconds:,.0f}",
+                )
+                last = chunk + 1 == chunks
+                if out is not None and (last or stop.raised or (chunk + 1 - first) % config.checkpoint_every == 0):
+                    save_checkpoint(out / CHECKPOINT, runner)
+                    _write_metrics(out / METRICS, rows)
+                if stop.raised and not last:
+                    if out is not None:
+                        plot_learning_curve(rows, out / "learning_curve.png", f"{config.learner.algo} on {config.scenario}")
+                    where = f"checkpoint saved; continue with: roverswarm train --resume {out}" if out else "nothing saved (no --out)"
+                    raise RunStopped(f"interrupted at episode {episodes}; {where}")
+    finally:  # flush TensorBoard also when the run stops early
+        if writer is not None:
+            writer.close()
     if out is not None:
         plot_learning_curve(rows, out / "learning_curve.png", f"{config.learner.algo} on {config.scenario}")
     return Result(config=config, metrics=rows, learner=runner.learner, out=out)
