@@ -29,12 +29,15 @@ def cli_args(config: TrainConfig) -> list[str]:
     args = []
     for f in dataclasses.fields(config):
         value = getattr(config, f.name)
+        flag = f.name.replace("_", "-")
         if f.name == "learner":
             args += cli_args(value)
+        elif isinstance(value, bool):
+            args.append(f"--{flag}" if value else f"--no-{flag}")
         elif isinstance(value, tuple):
-            args += [f"--{f.name.replace('_', '-')}", *map(str, value)]
+            args += [f"--{flag}", *map(str, value)]
         else:
-            args += [f"--{f.name.replace('_', '-')}", str(value)]
+            args += [f"--{flag}", str(value)]
     return args
 
 
@@ -58,6 +61,11 @@ def test_outputs_of_a_run(unbroken, tiny_config):
     assert (out / "learning_curve.png").stat().st_size > 1000
     assert any(p.name.startswith("events") for p in (out / "tb").iterdir())
     assert (out / CHECKPOINT).exists() and not list(out.glob("*.tmp"))
+    with np.load(out / CHECKPOINT) as data:  # a finished run keeps its networks, not its replay
+        assert any(k.startswith("learner/actor/") for k in data.files)
+        assert not any(k.startswith("buffer/") for k in data.files)
+    again = train(tiny_config, out=out, resume=True, progress=False)  # nothing left to do
+    assert TIMELESS(again.metrics) == TIMELESS(unbroken.metrics)
 
 
 def test_same_seed_same_numbers_different_seeds_different_networks(unbroken, tiny_config):
@@ -124,6 +132,32 @@ def test_non_finite_losses_stop_the_run_and_keep_the_last_good_checkpoint(tiny_c
     assert len(read_metrics(out / "metrics.csv")) == 2 * tiny_config.seeds
 
 
+def test_ranked_replay_is_deterministic_and_resumes_exactly(tiny_config, tmp_path, monkeypatch):
+    """Same seed => same numbers with the experience sample optimizer, also across a Ctrl-C
+    (checkpoint of losses and sampling table) and a resume."""
+    import roverswarm.train as train_module
+
+    config = dataclasses.replace(tiny_config, replay="ranked", refresh_every=10, importance_weights=True)
+    reference = train(config, progress=False)
+    real = train_module.run_chunk
+    calls = []
+
+    def interrupted(*args):
+        calls.append(1)
+        if len(calls) == 2:
+            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C mid-run: the trainer checkpoints and stops
+        return real(*args)
+
+    monkeypatch.setattr(train_module, "run_chunk", interrupted)
+    with pytest.raises(RunStopped, match="interrupted at episode 200"):
+        train(config, out=tmp_path, progress=False)
+    monkeypatch.setattr(train_module, "run_chunk", real)
+    resumed = train(config, out=tmp_path, resume=True, progress=False)
+    assert TIMELESS(resumed.metrics) == TIMELESS(reference.metrics)
+    newest = [r["sampled_newest"] for r in reference.metrics if r["critic_loss"] > 0]
+    assert newest and all(0 < x < 1 for x in newest)
+
+
 @pytest.mark.parametrize(
     "argv, message",
     [
@@ -131,6 +165,10 @@ def test_non_finite_losses_stop_the_run_and_keep_the_last_good_checkpoint(tiny_c
         (["--num-envs", "3"], "must be a multiple of --num-envs (3)"),
         (["--scenario", "mars-9"], "unknown scenario 'mars-9'"),
         (["--gamma", "1.5"], "--gamma must be in [0, 1]"),
+        (["--replay", "ranked", "--alpha", "-1"], "--alpha must be >= 0, got -1.0"),
+        (["--replay", "ranked", "--beta", "1.5"], "--beta must be in [0, 1], got 1.5"),
+        (["--replay", "ranked", "--refresh-every", "0"], "--refresh-every must be >= 1, got 0"),
+        (["--noise-decay-episodes", "-5"], "--noise-decay-episodes must be >= 0, got -5"),
     ],
 )
 def test_bad_training_input_is_one_line_and_exit_2(argv, message, capsys, tmp_path):

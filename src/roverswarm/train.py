@@ -23,6 +23,7 @@ import time
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
@@ -32,7 +33,8 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from tensorboardX import SummaryWriter
 
 from roverswarm.algos.maddpg import ALGOS, AlgoConfig, LearnerState, act, init_learner, update
-from roverswarm.buffers.uniform import Buffer, BufferState, Transition, uniform_buffer
+from roverswarm.buffers.ranked import ranked_buffer
+from roverswarm.buffers.uniform import Buffer, BufferState, Transition, importance_weights, newest_fraction, uniform_buffer
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, reset, step_env
 from roverswarm.env.scenarios import get_scenario
 from roverswarm.errors import RunStopped, UserError, require
@@ -60,12 +62,27 @@ class TrainConfig:
     """Transitions per update, per agent."""
     buffer_size: int = 1_000_000
     """Replay capacity in transitions."""
+    replay: Literal["uniform", "ranked"] = "uniform"
+    """`uniform`: the reference replay; `ranked`: the paper's experience sample optimizer
+    (eq. 12-15), sampling by the rank of each transition's latest TD loss."""
+    alpha: float = 1.0
+    """Ranked replay: amplification of the loss rank, P ~ rank^alpha (0 = uniform)."""
+    beta: float = 0.1
+    """Ranked replay: share of samples drawn uniformly, in [0, 1] (1 = uniform)."""
+    importance_weights: bool = False
+    """Weight each sample's critic loss by 1 / (M * P(i)), normalised to a batch maximum of 1."""
+    refresh_every: int = 250
+    """Ranked replay: updates between re-rankings of the whole buffer (checked once per iteration)."""
     update_every: int = 100
     """Environment steps (summed over parallel environments) per update of every agent."""
     warmup: int = 1024 * 25
     """Transitions stored before the first update."""
     noise_std: float = 0.1
     """Standard deviation of the Gaussian exploration noise added to actions (then clipped)."""
+    noise_final: float = 0.1
+    """Noise standard deviation after --noise-decay-episodes (linear decay from --noise-std)."""
+    noise_decay_episodes: int = 0
+    """Episodes over which the noise decays linearly to --noise-final; 0 keeps --noise-std."""
     log_every: int = 1000
     """Episodes per metrics row (and per jitted chunk)."""
     checkpoint_every: int = 10
@@ -77,7 +94,10 @@ def validate(config: TrainConfig) -> EnvParams:
     params = get_scenario(config.scenario)
     learner = config.learner
     require(learner.algo in ALGOS, f"--algo must be one of {', '.join(ALGOS)}, got '{learner.algo}'")
-    for name in ("episodes", "seeds", "num_envs", "batch_size", "buffer_size", "update_every", "log_every", "checkpoint_every"):
+    require(config.replay in ("uniform", "ranked"), f"--replay must be 'uniform' or 'ranked', got '{config.replay}'")
+    require(config.alpha >= 0, f"--alpha must be >= 0, got {config.alpha}")
+    require(0 <= config.beta <= 1, f"--beta must be in [0, 1], got {config.beta}")
+    for name in ("episodes", "seeds", "num_envs", "batch_size", "buffer_size", "update_every", "log_every", "checkpoint_every", "refresh_every"):
         value = getattr(config, name)
         require(value >= 1, f"--{name.replace('_', '-')} must be >= 1, got {value}")
     require(config.warmup >= 0, f"--warmup must be >= 0, got {config.warmup}")
@@ -102,7 +122,9 @@ def validate(config: TrainConfig) -> EnvParams:
         value = getattr(learner, name)
         require(value > 0, f"--{name.replace('_', '-')} must be positive, got {value}")
     require(0 <= learner.gamma <= 1, f"--gamma must be in [0, 1], got {learner.gamma}")
-    require(config.noise_std >= 0, f"--noise-std must be >= 0, got {config.noise_std}")
+    for name in ("noise_std", "noise_final", "noise_decay_episodes"):
+        value = getattr(config, name)
+        require(value >= 0, f"--{name.replace('_', '-')} must be >= 0, got {value}")
     return params
 
 
@@ -117,6 +139,7 @@ class Runner:
     buffer: BufferState  # [S, C, ...]
     key: jax.Array  # [S] PRNG keys
     episodes: jax.Array  # [] int32, episodes per seed so far (shared by all seeds)
+    updates: jax.Array  # [] int32, updates of every agent per seed so far (shared)
 
 
 def example_transition(params: EnvParams) -> Transition:
@@ -131,6 +154,8 @@ def example_transition(params: EnvParams) -> Transition:
 
 
 def make_buffer(config: TrainConfig, params: EnvParams) -> Buffer:
+    if config.replay == "ranked":
+        return ranked_buffer(config.buffer_size, config.batch_size, params.num_rovers, config.alpha, config.beta)
     return uniform_buffer(config.buffer_size, config.batch_size, params.num_rovers)
 
 
@@ -140,11 +165,20 @@ def init_runner(config: TrainConfig, params: EnvParams, buffer: Buffer) -> Runne
     init_keys, run_keys = jnp.split(jax.vmap(jax.random.split)(keys), 2, axis=1)
     learner = jax.vmap(lambda k: init_learner(k, config.learner, params.num_rovers, observation_size(params)))(init_keys[:, 0])
     buffers = jax.vmap(lambda _: buffer.init(example_transition(params)))(jnp.arange(config.seeds))
-    return Runner(learner=learner, buffer=buffers, key=run_keys[:, 0], episodes=jnp.zeros((), jnp.int32))
+    counter = lambda: jnp.zeros((), jnp.int32)  # noqa: E731 (separate arrays: the runner is donated)
+    return Runner(learner=learner, buffer=buffers, key=run_keys[:, 0], episodes=counter(), updates=counter())
 
 
-def collect(config: TrainConfig, params: EnvParams, actor, key: jax.Array):
-    """E episodes of one seed with Gaussian exploration noise.
+def noise_scale(config: TrainConfig, episodes: jax.Array) -> jax.Array:
+    """Exploration noise std after ``episodes`` episodes: linear from --noise-std to --noise-final."""
+    if config.noise_decay_episodes == 0:
+        return jnp.asarray(config.noise_std)
+    frac = jnp.minimum(episodes / config.noise_decay_episodes, 1.0)
+    return config.noise_std + frac * (config.noise_final - config.noise_std)
+
+
+def collect(config: TrainConfig, params: EnvParams, actor, key: jax.Array, noise_std: jax.Array):
+    """E episodes of one seed with Gaussian exploration noise of std ``noise_std``.
 
     Returns transitions [T, E, ...] and per-episode stats [E] (reward summed over agents and
     steps, per-agent rewards [E, N], collisions, trap contacts, final coverage distance).
@@ -154,7 +188,7 @@ def collect(config: TrainConfig, params: EnvParams, actor, key: jax.Array):
 
     def body(carry, k):
         obs, state = carry
-        noise = config.noise_std * jax.random.normal(k, (config.num_envs, params.num_rovers, ACTION_SIZE))
+        noise = noise_std * jax.random.normal(k, (config.num_envs, params.num_rovers, ACTION_SIZE))
         actions = jnp.clip(act(config.learner, actor, obs) + noise, -1.0, 1.0)
         next_obs, state, rewards, terminated, _, info = jax.vmap(step_env, in_axes=(0, 0, None))(state, actions, params)
         transition = Transition(obs=obs, actions=actions, rewards=rewards, next_obs=next_obs, terminated=terminated)
@@ -175,17 +209,35 @@ def collect(config: TrainConfig, params: EnvParams, actor, key: jax.Array):
 
 
 def learn(config: TrainConfig, buffer: Buffer, learner: LearnerState, buffer_state: BufferState, key: jax.Array):
-    """One update of every agent of one seed from its replay."""
+    """One update of every agent of one seed from its replay; the sampled TD losses go back to it.
+
+    Info [N] per agent: the update's losses and Q, and what was sampled (its mean and max TD
+    loss, and the fraction drawn from the newest 10% of the replay)."""
     sample = buffer.sample(buffer_state, key)
-    learner, info = update(config.learner, learner, sample.batch)
-    buffer_state = buffer.set_priorities(buffer_state, sample.indices, info["td_loss"])
-    return learner, buffer_state, {k: v for k, v in info.items() if k != "td_loss"}
+    weights = importance_weights(sample, buffer_state.size) if config.importance_weights else None
+    learner, info = update(config.learner, learner, sample.batch, weights)
+    td_loss = info.pop("td_loss")
+    buffer_state = buffer.set_priorities(buffer_state, sample.indices, td_loss)
+    info.update(
+        sampled_loss=td_loss.mean(-1),
+        sampled_loss_max=td_loss.max(-1),
+        sampled_newest=newest_fraction(buffer_state, sample.indices, 0.1),
+    )
+    return learner, buffer_state, info
+
+
+def _reduce(name: str, x: jax.Array, axis) -> jax.Array:
+    """Aggregate a metric: ``*_max`` metrics by their maximum, the others by their mean."""
+    return x.max(axis=axis) if name.endswith("_max") else x.mean(axis=axis)
 
 
 def iteration(config: TrainConfig, params: EnvParams, buffer: Buffer, runner: Runner, _):
     """E episodes per seed, their transitions into the replay, then U updates per seed."""
     keys = jax.vmap(lambda k: jax.random.split(k, 3))(runner.key)  # [S, 3, 2]
-    transitions, episode = jax.vmap(partial(collect, config, params))(runner.learner.actor, keys[:, 0])
+    noise_std = noise_scale(config, runner.episodes)
+    transitions, episode = jax.vmap(partial(collect, config, params), in_axes=(0, 0, None))(
+        runner.learner.actor, keys[:, 0], noise_std
+    )
     flat = jax.tree.map(lambda x: x.reshape(x.shape[0], -1, *x.shape[3:]), transitions)  # [S, K, ...]
     buffer_state = jax.vmap(buffer.add)(runner.buffer, flat)
     episodes = runner.episodes + config.num_envs
@@ -200,17 +252,20 @@ def iteration(config: TrainConfig, params: EnvParams, buffer: Buffer, runner: Ru
 
         update_keys = jax.vmap(lambda k: jax.random.split(k, num_updates), out_axes=1)(key)  # [U, S]
         (learner, buffer_state), info = jax.lax.scan(one, (learner, buffer_state), update_keys)
-        return learner, buffer_state, jax.tree.map(lambda x: x.mean(axis=0), info), jnp.ones(())
+        return learner, buffer_state, {k: _reduce(k, v, 0) for k, v in info.items()}, jnp.ones(())
 
     def skip(learner, buffer_state, key):
-        zeros = jnp.zeros((config.seeds, params.num_rovers))
-        return learner, buffer_state, {"critic_loss": zeros, "actor_loss": zeros, "q_mean": zeros}, jnp.zeros(())
+        shapes = jax.eval_shape(do_updates, learner, buffer_state, key)[2]
+        return learner, buffer_state, jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes), jnp.zeros(())
 
     # the warm-up gate is the same for every seed, so this stays a real branch under the seed vmap
     learner, buffer_state, info, updated = jax.lax.cond(
         transitions_seen >= config.warmup, do_updates, skip, runner.learner, buffer_state, keys[:, 1]
     )
-    runner = Runner(learner=learner, buffer=buffer_state, key=keys[:, 2], episodes=episodes)
+    updates = runner.updates + updated.astype(jnp.int32) * num_updates
+    due = updates // config.refresh_every > runner.updates // config.refresh_every  # shared by all seeds
+    buffer_state = jax.vmap(buffer.refresh, in_axes=(0, None))(buffer_state, due)
+    runner = Runner(learner=learner, buffer=buffer_state, key=keys[:, 2], episodes=episodes, updates=updates)
     return runner, (episode, info, updated)
 
 
@@ -224,8 +279,8 @@ def run_chunk(config: TrainConfig, params: EnvParams, buffer: Buffer, runner: Ru
     # episode: [I, S, E, ...] -> mean over iterations and environments, per seed
     metrics = {k: v.mean(axis=(0, 2)) for k, v in episode.items()}
     count = jnp.maximum(updated.sum(), 1.0)
-    for k, v in info.items():  # [I, S, N], averaged over the iterations that updated
-        metrics[k] = (v * updated[:, None, None]).sum(axis=0) / count
+    for k, v in info.items():  # [I, S, N], over the iterations that updated (the others hold zeros)
+        metrics[k] = v.max(axis=0) if k.endswith("_max") else (v * updated[:, None, None]).sum(axis=0) / count
     return runner, metrics
 
 
@@ -267,17 +322,22 @@ def _restore(template, flat: dict[str, np.ndarray], prefix: str = ""):
     return serialization.from_state_dict(template, fill(serialization.to_state_dict(template), ""))
 
 
-def save_checkpoint(path: Path, runner: Runner) -> None:
+def save_checkpoint(path: Path, runner: Runner, replay: bool = True) -> None:
     """Write ``runner`` to ``path`` atomically (temp file, then rename); plain arrays, no pickle.
 
-    Only the filled part of the replay is written; loading pads it back with zeros.
+    Only the filled part of the replay is written; loading pads it back with zeros. With
+    ``replay=False`` (a finished run: nothing left to train) the replay is left out, which
+    makes the file hundreds of times smaller.
     """
     runner = jax.device_get(runner)
     filled = int(np.max(runner.buffer.size))
     runner = runner.replace(buffer=runner.buffer.replace(data=jax.tree.map(lambda x: x[:, :filled], runner.buffer.data)))
+    arrays = _flatten(serialization.to_state_dict(runner))
+    if not replay:
+        arrays = {k: v for k, v in arrays.items() if not k.startswith("buffer/")}
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as f:
-        np.savez(f, **_flatten(serialization.to_state_dict(runner)))
+        np.savez(f, **arrays)
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
@@ -288,6 +348,8 @@ def load_checkpoint(path: Path, template: Runner) -> Runner:
     capacity = jax.tree.leaves(template.buffer.data)[0].shape[1]
     with np.load(path, allow_pickle=False) as data:
         flat = dict(data)
+    if not any(k.startswith("buffer/") for k in flat):  # a finished run's checkpoint: no replay kept
+        flat.update(_flatten(serialization.to_state_dict(template.buffer), "buffer/"))
     for key, x in flat.items():
         if key.startswith("buffer/data/"):
             flat[key] = np.concatenate([x, np.zeros((x.shape[0], capacity - x.shape[1], *x.shape[2:]), x.dtype)], axis=1)
@@ -331,6 +393,10 @@ class Result:
     out: Path | None
 
 
+LEARNER_METRICS = ("critic_loss", "actor_loss", "q_mean", "sampled_loss", "sampled_loss_max", "sampled_newest")
+"""Per-update metrics in ``metrics.csv`` (mean over agents; ``*_max``: max over agents and updates)."""
+
+
 def metric_rows(config: TrainConfig, metrics: dict[str, np.ndarray], episodes: int, seconds: float) -> list[dict[str, float]]:
     """One row per seed for a chunk. ``wall_seconds`` is the chunk's time for all seeds together."""
     rows = []
@@ -340,8 +406,8 @@ def metric_rows(config: TrainConfig, metrics: dict[str, np.ndarray], episodes: i
             row[f"agent_{i}_reward"] = float(r)
         for k in ("collisions", "trap_contacts", "coverage_distance"):
             row[k] = float(metrics[k][s])
-        for k in ("critic_loss", "actor_loss", "q_mean"):
-            row[k] = float(np.mean(metrics[k][s]))
+        for k in LEARNER_METRICS:
+            row[k] = float(np.max(metrics[k][s]) if k.endswith("_max") else np.mean(metrics[k][s]))
         row["wall_seconds"] = seconds
         rows.append(row)
     return rows
@@ -474,7 +540,7 @@ def train(config: TrainConfig, out: Path | None = None, resume: bool = False, pr
                 )
                 last = chunk + 1 == chunks
                 if out is not None and (last or stop.raised or (chunk + 1 - first) % config.checkpoint_every == 0):
-                    save_checkpoint(out / CHECKPOINT, runner)
+                    save_checkpoint(out / CHECKPOINT, runner, replay=not last)
                     _write_metrics(out / METRICS, rows)
                 if stop.raised and not last:
                     if out is not None:

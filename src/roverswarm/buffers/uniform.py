@@ -9,6 +9,7 @@ A :class:`Buffer` is a frozen record of pure functions (Flashbax style)::
     add(state, transitions [K, ...])   -> BufferState   (a ring: the oldest are overwritten)
     sample(state, key)                 -> Sample        (N independent batches of B, one per agent)
     set_priorities(state, idx, losses) -> BufferState   (idx, losses [N, B]; no-op if uniform)
+    refresh(state, due)                -> BufferState   (re-rank if ``due``; no-op if uniform)
 
 so the learner never knows which kind it has. Every agent draws its own batch, as in the
 reference MADDPG code; a batch holds all agents' data of the sampled transitions.
@@ -62,6 +63,7 @@ class Buffer:
     add: Callable[[BufferState, Transition], BufferState]
     sample: Callable[[BufferState, jax.Array], Sample]
     set_priorities: Callable[[BufferState, jax.Array, jax.Array], BufferState]
+    refresh: Callable[[BufferState, jax.Array], BufferState]
 
 
 def empty_state(capacity: int, example: Transition, extra: Any = None) -> BufferState:
@@ -91,6 +93,19 @@ def gather(state: BufferState, indices: jax.Array) -> Transition:
     return jax.tree.map(lambda d: d[indices], state.data)
 
 
+def importance_weights(sample: Sample, size: jax.Array) -> jax.Array:
+    """[N, B] importance-sampling weights ``1 / (M * P(i))``, divided by each batch's maximum."""
+    weights = 1.0 / (jnp.maximum(size, 1) * sample.probabilities)
+    return weights / weights.max(axis=-1, keepdims=True)
+
+
+def newest_fraction(state: BufferState, indices: jax.Array, share: float) -> jax.Array:
+    """[N] fraction of each agent's sampled ``indices`` among the newest ``share`` of the replay."""
+    capacity = jax.tree.leaves(state.data)[0].shape[0]
+    age = (state.position - 1 - indices) % capacity  # 0 = the newest transition
+    return (age < jnp.ceil(share * state.size)).mean(axis=-1)
+
+
 @functools.lru_cache(maxsize=None)
 def uniform_buffer(capacity: int, batch_size: int, num_agents: int) -> Buffer:
     """The reference MADDPG replay: every stored transition equally likely.
@@ -109,7 +124,7 @@ def uniform_buffer(capacity: int, batch_size: int, num_agents: int) -> Buffer:
         probabilities = jnp.full(indices.shape, 1.0) / jnp.maximum(state.size, 1)
         return Sample(batch=gather(state, indices), indices=indices, probabilities=probabilities)
 
-    def set_priorities(state: BufferState, indices: jax.Array, losses: jax.Array) -> BufferState:
+    def unchanged(state: BufferState, *_) -> BufferState:
         return state
 
-    return Buffer(capacity, batch_size, num_agents, init, add, sample, set_priorities)
+    return Buffer(capacity, batch_size, num_agents, init, add, sample, unchanged, unchanged)

@@ -1,0 +1,163 @@
+"""The experience sample optimizer against a slow NumPy computation of the paper's eq. 12-13."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import stats
+
+from roverswarm.buffers.ranked import ranked_buffer
+from roverswarm.buffers.uniform import Transition, importance_weights, uniform_buffer
+
+N = 2  # agents: each ranks by its own losses
+DRAWS = 400  # batches per check
+
+
+def reference_probabilities(losses: np.ndarray, alpha: float, beta: float) -> np.ndarray:
+    """Eq. 12-13, normalised: P(i) = (1 - beta) p_i^alpha / sum_j p_j^alpha + beta / M, with
+    p_i the ascending rank of loss i (ties: average rank; +inf is a new, unranked transition)."""
+    ranks = stats.rankdata(losses, method="average")
+    powered = ranks.astype(np.float64) ** alpha
+    return (1.0 - beta) * powered / powered.sum() + beta / len(losses)
+
+
+def transitions(first: int, count: int) -> Transition:
+    """``count`` transitions whose observations hold their number ``first``, ``first + 1``, ..."""
+    number = jnp.arange(first, first + count, dtype=jnp.float32)
+    return Transition(
+        obs=jnp.broadcast_to(number[:, None, None], (count, N, 1)),
+        actions=jnp.zeros((count, N, 2)),
+        rewards=jnp.zeros((count, N)),
+        next_obs=jnp.zeros((count, N, 1)),
+        terminated=jnp.zeros(count, bool),
+    )
+
+
+def filled(capacity: int, batch_size: int, stored: int, alpha: float, beta: float):
+    """A ranked buffer of ``capacity`` holding ``stored`` transitions (slot i holds number i)."""
+    buffer = ranked_buffer(capacity, batch_size, N, alpha, beta)
+    example = jax.tree.map(lambda x: x[0], transitions(0, 1))
+    return buffer, buffer.add(buffer.init(example), transitions(0, stored))
+
+
+def with_losses(buffer, state, losses: np.ndarray):
+    """Write per-agent ``losses`` [N, M] for slots 0..M-1 back, then re-rank."""
+    indices = jnp.broadcast_to(jnp.arange(losses.shape[1]), losses.shape)
+    state = buffer.set_priorities(state, indices, jnp.asarray(losses, jnp.float32))
+    return buffer.refresh(state, jnp.bool_(True))
+
+
+def draw(buffer, state, seed: int = 0):
+    """DRAWS batches: indices and probabilities [DRAWS, N, B]; checks the batch holds those slots."""
+
+    @jax.jit
+    def many(state, key):
+        def one(_, k):
+            sample = buffer.sample(state, k)
+            return None, (sample.indices, sample.probabilities, sample.batch.obs)
+
+        return jax.lax.scan(one, None, jax.random.split(key, DRAWS))[1]
+
+    indices, probabilities, obs = jax.device_get(many(state, jax.random.PRNGKey(seed)))
+    np.testing.assert_array_equal(obs[..., 0, 0], indices)  # agent 0's obs column holds the slot
+    return indices, probabilities
+
+
+def assert_matches(indices: np.ndarray, probabilities: np.ndarray, expected: np.ndarray):
+    """The draws of every agent follow ``expected`` [N, M] (chi-squared), and each draw reports
+    its probability under ``expected``."""
+    for agent in range(N):
+        counts = np.bincount(indices[:, agent].ravel(), minlength=expected.shape[1])
+        assert len(counts) == expected.shape[1], "drew a slot that holds no transition"
+        result = stats.chisquare(counts, expected[agent] * counts.sum())
+        assert result.pvalue > 1e-3, (agent, result)
+        np.testing.assert_allclose(probabilities[:, agent], expected[agent][indices[:, agent]], rtol=1e-4)
+
+
+def distinct_losses(rng, stored: int) -> np.ndarray:
+    """[N, stored] losses, a different order for each agent, each more than a loss bin (~1%)
+    apart from the next for up to 5000 transitions, so all ranks are distinct."""
+    return np.stack([rng.permutation(np.geomspace(1e-30, 1e30, stored)) for _ in range(N)])
+
+
+@pytest.mark.parametrize("alpha, beta", [(1.0, 0.0), (2.0, 0.1), (0.5, 0.5), (3.0, 0.2), (0.0, 0.3), (2.0, 1.0)])
+def test_sampling_follows_eq_12_13(alpha, beta):
+    rng = np.random.default_rng(0)
+    buffer, state = filled(capacity=128, batch_size=256, stored=100, alpha=alpha, beta=beta)
+    losses = distinct_losses(rng, 100)
+    expected = np.stack([reference_probabilities(l, alpha, beta) for l in losses])
+    assert_matches(*draw(buffer, with_losses(buffer, state, losses)), expected)
+    if alpha == 0.0 or beta == 1.0:
+        np.testing.assert_allclose(expected, 1.0 / 100)
+
+
+def test_equal_losses_share_their_average_rank():
+    rng = np.random.default_rng(1)
+    buffer, state = filled(capacity=64, batch_size=256, stored=60, alpha=2.0, beta=0.1)
+    losses = np.stack([rng.choice([0.5, 2.0, 8.0, 30.0], size=60) for _ in range(N)])
+    expected = np.stack([reference_probabilities(l, 2.0, 0.1) for l in losses])
+    assert_matches(*draw(buffer, with_losses(buffer, state, losses)), expected)
+
+
+def test_many_blocks_partly_filled():
+    """Capacity above one 1024-slot block of the sampling table, the last block and the
+    buffer both partly filled."""
+    rng = np.random.default_rng(2)
+    buffer, state = filled(capacity=3000, batch_size=1024, stored=2500, alpha=1.0, beta=0.2)
+    losses = distinct_losses(rng, 2500)
+    expected = np.stack([reference_probabilities(l, 1.0, 0.2) for l in losses])
+    assert_matches(*draw(buffer, with_losses(buffer, state, losses)), expected)
+
+
+def test_new_transitions_enter_at_the_top():
+    """Added after the last re-ranking, they tie above every ranked transition (loss +inf)."""
+    rng = np.random.default_rng(3)
+    buffer, state = filled(capacity=128, batch_size=256, stored=80, alpha=2.0, beta=0.1)
+    losses = distinct_losses(rng, 80)
+    state = with_losses(buffer, state, losses)
+    state = buffer.add(state, transitions(80, 20))
+    now = np.concatenate([losses, np.full((N, 20), np.inf)], axis=1)
+    expected = np.stack([reference_probabilities(l, 2.0, 0.1) for l in now])
+    assert_matches(*draw(buffer, state), expected)
+
+
+def test_a_written_back_huge_loss_is_drawn_far_more_often_after_the_re_ranking():
+    rng = np.random.default_rng(4)
+    buffer, state = filled(capacity=64, batch_size=256, stored=50, alpha=3.0, beta=0.1)
+    losses = distinct_losses(rng, 50)
+    state = with_losses(buffer, state, losses)
+    before = draw(buffer, state)[0]
+    hot = int(np.argmin(losses[0]))  # agent 0's least likely transition becomes its most likely
+    state = buffer.set_priorities(state, jnp.full((N, 1), hot), jnp.full((N, 1), 1e36))
+    unchanged = draw(buffer, state)[0]  # ranks are lazy: nothing moves until the re-ranking
+    np.testing.assert_array_equal(unchanged, before)
+    after, probabilities = draw(buffer, buffer.refresh(state, jnp.bool_(True)))
+    share = lambda idx: np.mean(idx[:, 0] == hot)  # noqa: E731
+    uniform = 1 / 50
+    assert share(before) < 0.5 * uniform and share(after) > 3 * uniform
+    losses[:, hot] = 1e36
+    assert_matches(after, probabilities, np.stack([reference_probabilities(l, 3.0, 0.1) for l in losses]))
+
+
+def test_importance_weights_match_their_definition():
+    rng = np.random.default_rng(5)
+    buffer, state = filled(capacity=64, batch_size=32, stored=40, alpha=2.0, beta=0.2)
+    losses = distinct_losses(rng, 40)
+    state = with_losses(buffer, state, losses)
+    sample = buffer.sample(state, jax.random.PRNGKey(9))
+    weights = np.asarray(importance_weights(sample, state.size))
+    for agent in range(N):
+        p = reference_probabilities(losses[agent], 2.0, 0.2)[np.asarray(sample.indices[agent])]
+        w = 1.0 / (40 * p)  # w_i = (M P(i))^-1, scaled so the batch's largest weight is 1
+        np.testing.assert_allclose(weights[agent], w / w.max(), rtol=1e-4)
+    assert weights.max() == pytest.approx(1.0)
+
+
+def test_the_uniform_buffer_weighs_every_sample_equally():
+    buffer = uniform_buffer(64, 32, N)
+    state = buffer.add(buffer.init(jax.tree.map(lambda x: x[0], transitions(0, 1))), transitions(0, 40))
+    sample = buffer.sample(state, jax.random.PRNGKey(0))
+    np.testing.assert_allclose(sample.probabilities, 1 / 40)
+    np.testing.assert_allclose(importance_weights(sample, state.size), 1.0)
