@@ -15,11 +15,10 @@ import jax
 import numpy as np
 import pytest
 
-from roverswarm.algos.maddpg import AlgoConfig
 from roverswarm.cli import main
 from roverswarm.errors import RunStopped, UserError
 from roverswarm.evaluate import evaluate_run
-from roverswarm.train import CHECKPOINT, TrainConfig, config_from_json, load_run, read_metrics, train
+from roverswarm.train import CHECKPOINT, REFERENCE, TrainConfig, config_from_json, load_run, read_metrics, train
 
 TIMELESS = lambda rows: [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rows]  # noqa: E731
 
@@ -205,8 +204,10 @@ def test_evaluate_reports_policies_beside_random_and_oracle(unbroken, capsys):
 @pytest.mark.slow
 @pytest.mark.parametrize("algo", ["maddpg", "ddpg"])
 def test_a_short_run_learns_to_beat_random_by_a_wide_margin(algo, tmp_path):
-    config = TrainConfig(
-        scenario="paper-2", learner=AlgoConfig(algo=algo), episodes=4000, seeds=2, batch_size=256, buffer_size=50_000
+    """The reference settings (the cheapest to train) on paper-2, 4000 episodes."""
+    config = dataclasses.replace(
+        REFERENCE, scenario="paper-2", learner=dataclasses.replace(REFERENCE.learner, algo=algo),
+        episodes=4000, seeds=2, batch_size=256, buffer_size=50_000,
     )
     result = train(config, out=tmp_path, progress=False)
     rows = evaluate_run(tmp_path, episodes=500)
@@ -215,3 +216,22 @@ def test_a_short_run_learns_to_beat_random_by_a_wide_margin(algo, tmp_path):
     scores = [r["normalized_score"] for r in rows[2:]]
     assert min(scores) > 0.3, rows
     assert result.metrics[-1]["episode_reward"] > result.metrics[0]["episode_reward"]
+
+
+def test_preset_reference_starts_from_the_reference_values(monkeypatch, tmp_path):
+    import roverswarm.cli as cli
+
+    seen = []
+    monkeypatch.setattr(cli, "train", lambda config, **kw: seen.append(config) or (_ for _ in ()).throw(RunStopped("parsed")))
+    assert main(["train", "--preset", "reference", "--scenario", "spread-3", "--out", str(tmp_path / "a")]) == 1
+    assert main(["train", "--scenario", "spread-3", "--out", str(tmp_path / "b")]) == 1
+    assert seen[0] == dataclasses.replace(REFERENCE, scenario="spread-3")
+    assert seen[1] == TrainConfig(scenario="spread-3") != seen[0]
+    assert (seen[0].learner.actor_lr, seen[0].update_every, seen[0].batch_size) == (1e-2, 100, 1024)
+
+
+def test_the_python_api_is_roverswarm_train(unbroken, tiny_config):
+    import roverswarm
+
+    result = roverswarm.train(tiny_config, progress=False)
+    assert isinstance(result, roverswarm.Result) and TIMELESS(result.metrics) == TIMELESS(unbroken.metrics)

@@ -9,14 +9,15 @@ import dataclasses
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Callable, Literal
+from typing import Annotated, Callable, Literal, Union
 
 import tyro
 from rich.console import Console
 from rich.table import Table
 
 from roverswarm.errors import RunStopped, UserError, require
-from roverswarm.train import CONFIG, TrainConfig, config_from_json, train
+from roverswarm.experiments import ReproduceConfig, reproduce
+from roverswarm.train import CONFIG, PRESETS, TrainConfig, config_from_json, train
 
 
 @dataclass(frozen=True)
@@ -42,6 +43,9 @@ class RenderCommand:
 class TrainCommand:
     """Train MADDPG or DDPG on a scenario (seeds vmapped); writes metrics, checkpoints, curves."""
 
+    preset: Literal["default", "reference"] = "default"
+    """Starting values of every option: `default` (tuned to learn), or `reference` (the
+    reference MADDPG code's, as in the paper). Options given beside it change them."""
     config: TrainConfig = field(default_factory=TrainConfig)
     out: Path | None = None
     """Output folder (config.json, metrics.csv, tb/, checkpoint.npz, learning_curve.png)."""
@@ -79,7 +83,7 @@ def run_train(cmd: TrainCommand) -> None:
         require((cmd.resume / CONFIG).exists(), f"--resume: '{cmd.resume}' holds no config.json")
         require(cmd.out in (None, cmd.resume), "--out and --resume name different folders")
         config = config_from_json((cmd.resume / CONFIG).read_text())
-        given, defaults, saved = (_flat_fields(c) for c in (cmd.config, TrainConfig(), config))
+        given, defaults, saved = (_flat_fields(c) for c in (cmd.config, PRESETS[cmd.preset], config))
         for name, value in given.items():  # options given with --resume must match the run
             if value != defaults[name]:
                 require(value == saved[name], f"--resume: the run in '{cmd.resume}' has {name}={saved[name]!r}, not {value!r}")
@@ -87,6 +91,19 @@ def run_train(cmd: TrainCommand) -> None:
     last = [r for r in result.metrics if r["episodes"] == result.metrics[-1]["episodes"]]
     mean = sum(r["episode_reward"] for r in last) / len(last)
     Console().print(f"done: mean episode reward {mean:.2f} over the last {config.log_every} episodes" + (f"; results in {result.out}" if result.out else ""))
+
+
+@dataclass(frozen=True)
+class ReproduceCommand:
+    """Run the paper's grid (N = 2..5 x DDPG, MADDPG, MADDPG + optimizer) and write its
+    Table I, Figures 8-9 and a report. Finished runs are kept; rerunning finishes the rest."""
+
+    config: ReproduceConfig = field(default_factory=ReproduceConfig)
+
+
+def run_reproduce(cmd: ReproduceCommand) -> None:
+    report = reproduce(cmd.config)
+    Console().print(f"\ndone: {report} (with table1.md, table1.csv, fig8.png, fig9.png)")
 
 
 def run_evaluate(cmd: EvaluateCommand) -> None:
@@ -129,13 +146,34 @@ COMMANDS: dict[str, tuple[type, Callable]] = {
     "render": (RenderCommand, run_render),
     "train": (TrainCommand, run_train),
     "evaluate": (EvaluateCommand, run_evaluate),
+    "reproduce": (ReproduceCommand, run_reproduce),
 }
+
+
+def _preset_defaults(argv: list[str]) -> dict[str, object]:
+    """Default instances of the commands: ``train --preset NAME`` starts from that preset."""
+    preset = "default"
+    if argv[:1] == ["train"]:
+        for i, arg in enumerate(argv):
+            if arg == "--preset" and i + 1 < len(argv):
+                preset = argv[i + 1]
+            elif arg.startswith("--preset="):
+                preset = arg.split("=", 1)[1]
+    if preset not in PRESETS:
+        return {}  # tyro reports the bad choice
+    return {"train": TrainCommand(preset=preset, config=PRESETS[preset])}
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``roverswarm`` command. Returns the exit code (0, or 2 for user errors)."""
-    cmd = tyro.extras.subcommand_cli_from_dict(
-        {name: Annotated[cls, tyro.conf.arg(name=name)] for name, (cls, _) in COMMANDS.items()},
+    argv = sys.argv[1:] if argv is None else argv
+    defaults = _preset_defaults(argv)
+    commands = tuple(
+        Annotated[cls, tyro.conf.subcommand(name=name, **({"default": defaults[name]} if name in defaults else {}))]
+        for name, (cls, _) in COMMANDS.items()
+    )
+    cmd = tyro.cli(
+        Union[commands],  # type: ignore[valid-type]
         prog="roverswarm",
         config=(tyro.conf.OmitArgPrefixes,),
         description="Multi-agent reinforcement learning of rover swarms exploring a planetary surface.",

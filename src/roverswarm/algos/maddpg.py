@@ -41,13 +41,15 @@ ALGOS: tuple[str, ...] = ("maddpg", "ddpg")
 
 @dataclass(frozen=True)
 class AlgoConfig:
-    """Learner hyper-parameters. Defaults are the reference MADDPG code's."""
+    """Learner hyper-parameters. Defaults are tuned to learn with continuous actions (wider
+    networks, smaller learning rates than the reference code's 2x64 and 1e-2; see
+    ``roverswarm.train.REFERENCE``)."""
 
     algo: Algo = "maddpg"
     """`maddpg`: centralised critics Q_i(x, a_1..a_N); `ddpg`: local critics Q_i(o_i, a_i)."""
-    actor_lr: float = 1e-2
+    actor_lr: float = 1e-3
     """Adam learning rate of the actors."""
-    critic_lr: float = 1e-2
+    critic_lr: float = 1e-3
     """Adam learning rate of the critics."""
     gamma: float = 0.95
     """Discount factor."""
@@ -55,7 +57,7 @@ class AlgoConfig:
     """Soft target update rate."""
     grad_clip: float = 0.5
     """Global gradient-norm clip of each network's update."""
-    hidden: tuple[int, ...] = (64, 64)
+    hidden: tuple[int, ...] = (128, 128)
     """Hidden layer widths of actors and critics (ReLU)."""
     action_penalty: float = 1e-3
     """Weight of the mean squared pre-tanh actor output in the actor loss."""

@@ -1,0 +1,243 @@
+"""The paper's experiment grid: scenarios x algorithms, seeds vmapped inside each run.
+
+Each (scenario, algorithm) run trains in its own folder ``OUT/runs/<scenario>/<algorithm>``
+with :func:`roverswarm.train.train`. A finished run is never trained again (unless
+``--force``); an interrupted one resumes from its checkpoint. Runs execute in this process
+(``--backend local``) or as tasks of a Ray cluster (``--backend ray``), each retried if its
+worker dies; either way the files land in the same folders and the same report.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Literal
+
+from rich.console import Console, Group
+from rich.live import Live
+from rich.table import Table
+
+from roverswarm.env.scenarios import SCENARIOS
+from roverswarm.errors import UserError, require
+from roverswarm.train import (
+    CHECKPOINT, CONFIG, METRICS, REFERENCE, TrainConfig, config_from_json, config_to_json, read_metrics, train, validate,
+)
+
+ALGORITHMS: dict[str, dict[str, str]] = {
+    "ddpg": {"algo": "ddpg", "replay": "uniform"},
+    "maddpg": {"algo": "maddpg", "replay": "uniform"},
+    "maddpg-optimizer": {"algo": "maddpg", "replay": "ranked"},
+}
+"""The paper's three learners: DDPG, MADDPG, and MADDPG with the experience sample optimizer."""
+
+Algorithm = Literal["ddpg", "maddpg", "maddpg-optimizer"]
+
+
+@dataclass(frozen=True)
+class ReproduceConfig:
+    """The grid of the paper's section IV and where its results go."""
+
+    out: Path = Path("results/paper")
+    """Output folder: runs/, table1.md/.csv, fig8.png, fig9.png, report.md."""
+    quick: bool = False
+    """A small grid that finishes in minutes on a 2-core CPU: 2 seeds, 2000 episodes per run,
+    metrics every 500 episodes (the learners keep the paper's settings)."""
+    scenarios: tuple[str, ...] = ("paper-2", "paper-3", "paper-4", "paper-5")
+    """Scenario presets, one per swarm size N."""
+    algorithms: tuple[Algorithm, ...] = ("ddpg", "maddpg", "maddpg-optimizer")
+    """Learners to compare (Table I needs maddpg and maddpg-optimizer)."""
+    seeds: int | None = None
+    """Seeds per run, vmapped together (default 5; 2 with --quick)."""
+    episodes: int | None = None
+    """Training episodes per seed (default the paper's 60000; 2000 with --quick)."""
+    seed: int = 0
+    """Base random seed of every run (the same seeds for every learner)."""
+    force: bool = False
+    """Train every run again, even finished ones."""
+    backend: Literal["local", "ray"] = "local"
+    """`local`: runs one after another in this process; `ray`: one Ray task per run."""
+    address: str | None = None
+    """Ray cluster address for --backend ray (default: start a local Ray instance)."""
+    retries: int = 3
+    """Ray: times a run is retried when its worker dies."""
+
+    @property
+    def grid_seeds(self) -> int:
+        return self.seeds if self.seeds is not None else (2 if self.quick else 5)
+
+    @property
+    def grid_episodes(self) -> int:
+        return self.episodes if self.episodes is not None else (2000 if self.quick else 60_000)
+
+
+@dataclass(frozen=True)
+class Run:
+    """One cell of the grid."""
+
+    scenario: str
+    algorithm: str
+    config: TrainConfig
+    folder: Path
+
+    @property
+    def name(self) -> str:
+        return f"{self.scenario} {self.algorithm}"
+
+
+def plan(config: ReproduceConfig, base: TrainConfig = REFERENCE) -> list[Run]:
+    """The runs of the grid, at the settings of ``base`` (default: the reference, i.e. the
+    paper's), after checking the input."""
+    require(len(config.scenarios) > 0, "--scenarios: give at least one scenario")
+    for name in config.scenarios:
+        require(name in SCENARIOS, f"--scenarios: unknown scenario '{name}'; known: {', '.join(SCENARIOS)}")
+    require(len(set(config.algorithms)) == len(config.algorithms) > 0, "--algorithms: give each algorithm once")
+    require(config.grid_seeds >= 1, f"--seeds must be >= 1, got {config.grid_seeds}")
+    require(config.retries >= 0, f"--retries must be >= 0, got {config.retries}")
+    require(config.address is None or config.backend == "ray", "--address needs --backend ray")
+    runs = []
+    for scenario in config.scenarios:
+        for algorithm in config.algorithms:
+            settings = ALGORITHMS[algorithm]
+            train_config = dataclasses.replace(
+                base,
+                scenario=scenario,
+                learner=dataclasses.replace(base.learner, algo=settings["algo"]),
+                replay=settings["replay"],
+                episodes=config.grid_episodes,
+                seeds=config.grid_seeds,
+                seed=config.seed,
+                log_every=500 if config.quick else base.log_every,
+            )
+            runs.append(Run(scenario, algorithm, train_config, config.out / "runs" / scenario / algorithm))
+    return runs
+
+
+def status(run: Run) -> Literal["done", "partial", "new"]:
+    """Whether ``run``'s folder holds its finished run, an interrupted one, or nothing.
+
+    A folder holding a run of other settings is an error (the user chooses: --force or
+    another --out), never silently overwritten."""
+    if not (run.folder / CONFIG).exists():
+        return "new"
+    saved = config_from_json((run.folder / CONFIG).read_text())
+    if saved != run.config:
+        raise UserError(f"'{run.folder}' holds a run with other settings; rerun with --force to replace it, or choose another --out")
+    if not (run.folder / CHECKPOINT).exists():
+        return "new"
+    rows = read_metrics(run.folder / METRICS) if (run.folder / METRICS).exists() else []
+    finished = sum(1 for r in rows if r["episodes"] == run.config.episodes) == run.config.seeds
+    return "done" if finished else "partial"
+
+
+# ----------------------------------------------------------------------------- live summary
+
+
+class Summary:
+    """A rich table of the grid: runs done, running and left, and the estimated time left."""
+
+    def __init__(self, runs: list[Run], done: set[str]):
+        self.runs = runs
+        self.done = set(done)
+        self.running: dict[str, int] = {}
+        self.started = time.perf_counter()
+        self.trained = 0  # seed-episodes trained by this command (for the time estimate)
+
+    def progress(self, run: Run, episodes: int) -> None:
+        previous = self.running.get(run.name, episodes)
+        self.trained += max(episodes - previous, 0) * run.config.seeds
+        self.running[run.name] = episodes
+
+    def finish(self, run: Run) -> None:
+        self.running.pop(run.name, None)
+        self.done.add(run.name)
+
+    def __rich__(self) -> Group:
+        left = [r for r in self.runs if r.name not in self.done]
+        todo = sum((r.config.episodes - self.running.get(r.name, 0)) * r.config.seeds for r in left)
+        elapsed = time.perf_counter() - self.started
+        eta = f"{todo * elapsed / self.trained / 60:.0f} min" if self.trained else "-"
+        head = f"runs: {len(self.done)} done, {len(self.running)} running, {len(left) - len(self.running)} left; time left ~ {eta}"
+        table = Table(title=head, title_justify="left")
+        for column in ("run", "state", "episodes"):
+            table.add_column(column)
+        for r in self.runs:
+            state = "done" if r.name in self.done else ("running" if r.name in self.running else "queued")
+            episodes = r.config.episodes if state == "done" else self.running.get(r.name, 0)
+            table.add_row(r.name, state, f"{episodes}/{r.config.episodes}")
+        return Group(table)
+
+
+# ----------------------------------------------------------------------------- backends
+
+
+def run_local(runs: list[Run], summary: Summary) -> None:
+    """Train ``runs`` one after another in this process (resuming interrupted ones)."""
+    for run in runs:
+        resume = status(run) == "partial"
+        summary.progress(run, 0)
+        train(run.config, out=run.folder, resume=resume, progress=False, on_chunk=lambda e, r=run: summary.progress(r, e))
+        summary.finish(run)
+
+
+def train_remote(config_json: str) -> dict[str, bytes]:
+    """A Ray task: train one run in a scratch folder, return its files {relative path: bytes}."""
+    from roverswarm.jaxcache import enable_compilation_cache
+
+    enable_compilation_cache()
+    with tempfile.TemporaryDirectory() as scratch:
+        out = Path(scratch) / "run"
+        train(config_from_json(config_json), out=out, progress=False)
+        return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+
+
+def run_ray(runs: list[Run], summary: Summary, address: str | None, retries: int) -> None:
+    """Send each run to a Ray cluster as one task (retried if its worker dies); write the
+    returned files into the run's folder as each task completes."""
+    try:
+        import ray
+    except ImportError as error:
+        raise UserError("--backend ray needs Ray: pip install 'roverswarm[ray]'") from error
+    if not ray.is_initialized():
+        ray.init(address=address, log_to_driver=False)
+    task = ray.remote(num_cpus=1, max_retries=retries)(train_remote)
+    pending = {task.remote(config_to_json(run.config)): run for run in runs}
+    for run in runs:
+        summary.progress(run, 0)
+    while pending:
+        ready, _ = ray.wait(list(pending), num_returns=1)
+        run = pending.pop(ready[0])
+        files = ray.get(ready[0])
+        if run.folder.exists():
+            shutil.rmtree(run.folder)
+        for name, content in files.items():
+            path = run.folder / name
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_bytes(content)
+        summary.finish(run)
+
+
+def run_grid(config: ReproduceConfig, base: TrainConfig = REFERENCE, live: bool = True) -> list[Run]:
+    """Train every run of the grid that is not finished yet; returns all runs of the grid."""
+    runs = plan(config, base)
+    for run in runs:
+        validate(run.config)
+    if config.force:
+        for run in runs:
+            if run.folder.exists():
+                shutil.rmtree(run.folder)
+    done = {run.name for run in runs if status(run) == "done"}
+    todo = [run for run in runs if run.name not in done]
+    summary = Summary(runs, done)
+    execute: Callable[[], None] = (
+        (lambda: run_ray(todo, summary, config.address, config.retries)) if config.backend == "ray" else (lambda: run_local(todo, summary))
+    )
+    if live:
+        with Live(summary, console=Console(), refresh_per_second=2):
+            execute()
+    else:
+        execute()
+    return runs

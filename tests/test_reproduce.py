@@ -1,0 +1,157 @@
+"""`roverswarm reproduce`: a tiny grid end to end, resume, --force, and the Ray backend."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+from scipy import stats
+
+import roverswarm.experiments.grid as grid_module
+from roverswarm.cli import main
+from roverswarm.errors import RunStopped, UserError
+from roverswarm.experiments import ReproduceConfig, reproduce
+from roverswarm.experiments.paper import PAPER_TABLE1
+
+SCENARIOS = ("paper-2", "paper-3")
+ALGORITHMS = ("ddpg", "maddpg", "maddpg-optimizer")
+
+
+@pytest.fixture(scope="module")
+def base(tiny_config):
+    return dataclasses.replace(tiny_config, refresh_every=10)
+
+
+def tiny_grid(out: Path, **changes) -> ReproduceConfig:
+    return ReproduceConfig(**{"out": out, "scenarios": SCENARIOS, "seeds": 2, "episodes": 400, **changes})
+
+
+@pytest.fixture(scope="module")
+def finished(base, tmp_path_factory):
+    out = tmp_path_factory.mktemp("grid")
+    reproduce(tiny_grid(out), base, live=False)
+    return out
+
+
+def seed_rows(path: Path) -> dict[int, list[dict[str, float]]]:
+    """A metrics.csv read with the csv module only, grouped by seed."""
+    with open(path, newline="") as f:
+        rows = [{k: float(v) for k, v in r.items()} for r in csv.DictReader(f)]
+    return {s: [r for r in rows if int(r["seed"]) == s] for s in sorted({int(r["seed"]) for r in rows})}
+
+
+def test_table1_comes_from_the_metrics_files(finished):
+    with open(finished / "table1.csv", newline="") as f:
+        table = [{k: float(v) for k, v in r.items()} for r in csv.DictReader(f)]
+    assert [int(r["rovers"]) for r in table] == [2, 3]
+    for row, scenario in zip(table, SCENARIOS):
+        best = {}
+        seconds = {}
+        for algorithm in ("maddpg", "maddpg-optimizer"):
+            per_seed = seed_rows(finished / "runs" / scenario / algorithm / "metrics.csv")
+            best[algorithm] = np.array([max(r["episode_reward"] for r in rows) for rows in per_seed.values()])
+            seconds[algorithm] = np.array([r["wall_seconds"] * 10 for r in per_seed[0][1:]])  # rows of 100 episodes
+        plain, opt = best["maddpg"], best["maddpg-optimizer"]
+        assert row["reward_change_pct"] == pytest.approx(100 * (opt.mean() - plain.mean()) / abs(plain.mean()), rel=1e-6)
+        assert row["reward_p"] == pytest.approx(stats.ttest_ind(opt, plain, equal_var=False).pvalue, rel=1e-6)
+        assert row["reward_ci_low"] < row["reward_change_pct"] < row["reward_ci_high"]
+        t_plain, t_opt = seconds["maddpg"], seconds["maddpg-optimizer"]
+        assert row["time_change_pct"] == pytest.approx(100 * (t_opt.mean() - t_plain.mean()) / t_plain.mean(), rel=1e-6)
+        assert (row["paper_reward_change_pct"], row["paper_time_change_pct"]) == PAPER_TABLE1[int(row["rovers"])]
+    markdown = (finished / "table1.md").read_text()
+    assert markdown.count("\n| ") == 2 and "+8.78%" not in markdown and "+3.08%" in markdown
+
+
+def test_figures_and_report(finished):
+    for name in ("fig8.png", "fig9.png"):
+        image = iio.imread(finished / name)
+        assert image.ndim == 3 and image.shape[0] > 300 and image.shape[1] > 600
+        assert image[..., :3].std() > 10  # not a blank canvas
+    report = (finished / "report.md").read_text()
+    for part in ("## Settings", "## Machine", "Wall time", "## Table I", "(fig8.png)", "(fig9.png)", "MADDPG beats DDPG", "helps more as N grows"):
+        assert part in report
+    assert "| 3 | MADDPG + optimizer |" in report
+
+
+def test_an_interrupted_grid_finishes_only_the_missing_runs(base, finished, tmp_path, monkeypatch):
+    real = grid_module.train
+    calls = []
+
+    def stops_after_two(config, out, **kwargs):
+        calls.append(Path(out))
+        if len(calls) == 3:
+            raise RunStopped("interrupted")
+        return real(config, out, **kwargs)
+
+    monkeypatch.setattr(grid_module, "train", stops_after_two)
+    small = tiny_grid(tmp_path, scenarios=("paper-2",))
+    with pytest.raises(RunStopped):
+        reproduce(small, base, live=False)
+    calls.clear()
+    monkeypatch.setattr(grid_module, "train", lambda config, out, **kw: calls.append(Path(out)) or real(config, out, **kw))
+    reproduce(small, base, live=False)
+    assert calls == [tmp_path / "runs" / "paper-2" / "maddpg-optimizer"]
+    for algorithm in ALGORITHMS:  # same seeds, same numbers as the unbroken grid
+        ours, theirs = (seed_rows(root / "runs" / "paper-2" / algorithm / "metrics.csv") for root in (tmp_path, finished))
+        assert [[r["episode_reward"] for r in rows] for rows in ours.values()] == [[r["episode_reward"] for r in rows] for rows in theirs.values()]
+    calls.clear()
+    reproduce(small, base, live=False)  # nothing left: nothing trains
+    assert calls == []
+    reproduce(tiny_grid(tmp_path, scenarios=("paper-2",), algorithms=("ddpg",), force=True), base, live=False)
+    assert calls == [tmp_path / "runs" / "paper-2" / "ddpg"]
+
+
+def test_a_folder_with_other_settings_is_not_overwritten(base, finished, capsys):
+    with pytest.raises(UserError, match="holds a run with other settings"):
+        reproduce(tiny_grid(finished, seed=5), base, live=False)
+    assert main(["reproduce", "--out", str(finished), "--scenarios", "paper-9"]) == 2
+    assert "unknown scenario 'paper-9'" in capsys.readouterr().err
+    assert main(["reproduce", "--out", str(finished), "--address", "x:1"]) == 2
+    assert "--address needs --backend ray" in capsys.readouterr().err
+
+
+def _kill_one_worker(killed: list[int], stop: threading.Event) -> None:
+    """SIGKILL the first Ray worker seen running a training task (once)."""
+    while not stop.is_set() and not killed:
+        for pid in os.listdir("/proc"):
+            if not pid.isdigit():
+                continue
+            try:
+                title = Path(f"/proc/{pid}/cmdline").read_bytes()
+            except OSError:
+                continue
+            if b"ray::train_remote" in title:
+                time.sleep(1.0)  # let it get going first
+                os.kill(int(pid), signal.SIGKILL)
+                killed.append(int(pid))
+                return
+        time.sleep(0.05)
+
+
+def test_ray_backend_retries_a_killed_worker_and_matches_the_local_backend(base, finished, tmp_path):
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    killed: list[int] = []
+    stop = threading.Event()
+    killer = threading.Thread(target=_kill_one_worker, args=(killed, stop), daemon=True)
+    killer.start()
+    try:
+        config = tiny_grid(tmp_path, scenarios=("paper-2",), backend="ray", retries=2)
+        reproduce(config, base, live=False)
+    finally:
+        stop.set()
+        ray.shutdown()
+    assert killed, "no worker was killed"
+    for algorithm in ALGORITHMS:
+        ours, local = (seed_rows(root / "runs" / "paper-2" / algorithm / "metrics.csv") for root in (tmp_path, finished))
+        strip = lambda rows: {s: [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rs] for s, rs in rows.items()}  # noqa: E731
+        assert strip(ours) == strip(local)
+    assert (tmp_path / "report.md").exists()
