@@ -161,3 +161,19 @@ def test_the_uniform_buffer_weighs_every_sample_equally():
     sample = buffer.sample(state, jax.random.PRNGKey(0))
     np.testing.assert_allclose(sample.probabilities, 1 / 40)
     np.testing.assert_allclose(importance_weights(sample, state.size), 1.0)
+
+
+def test_a_steep_alpha_on_a_nearly_empty_buffer_stays_finite():
+    """(rank / C)^alpha would underflow to 0 for every transition here; the draw must still
+    follow the formula's top ranks and report finite, positive probabilities."""
+    rng = np.random.default_rng(6)
+    buffer, state = filled(capacity=100_000, batch_size=256, stored=50, alpha=60.0, beta=0.0)
+    losses = distinct_losses(rng, 50)
+    state = buffer.add(with_losses(buffer, state, losses), transitions(50, 10))
+    indices, probabilities = draw(buffer, state)
+    now = np.concatenate([losses, np.full((N, 10), np.inf)], axis=1)
+    expected = np.stack([reference_probabilities(l, 60.0, 0.0) for l in now])
+    assert indices.max() < 60 and np.all(np.isfinite(probabilities)) and np.all(probabilities > 0)
+    for agent in range(N):  # the ten fresh transitions tie at the top and take almost everything
+        assert np.mean(indices[:, agent] >= 50) == pytest.approx(expected[agent, 50:].sum(), abs=0.01)
+        np.testing.assert_allclose(probabilities[:, agent], expected[agent][indices[:, agent]], rtol=1e-3)

@@ -19,7 +19,7 @@ import roverswarm.experiments.grid as grid_module
 from roverswarm.cli import main
 from roverswarm.errors import RunStopped, UserError
 from roverswarm.experiments import ReproduceConfig, reproduce
-from roverswarm.experiments.paper import PAPER_TABLE1
+from roverswarm.experiments.paper import PAPER_TABLE1, relative_change
 
 SCENARIOS = ("paper-2", "paper-3")
 ALGORITHMS = ("ddpg", "maddpg", "maddpg-optimizer")
@@ -116,6 +116,21 @@ def test_a_folder_with_other_settings_is_not_overwritten(base, finished, capsys)
     assert "unknown scenario 'paper-9'" in capsys.readouterr().err
     assert main(["reproduce", "--out", str(finished), "--address", "x:1"]) == 2
     assert "--address needs --backend ray" in capsys.readouterr().err
+    assert main(["reproduce", "--out", str(finished), "--scenarios", "paper-3", "spread-3"]) == 2
+    assert "give each swarm size N once" in capsys.readouterr().err
+
+
+def test_the_relative_change_interval_covers_the_truth_95_percent_of_the_time():
+    """Monte Carlo: 5 seeds each, true change +10%; the interval should hold it ~95% of the time."""
+    rng = np.random.default_rng(0)
+    hits = 0
+    trials = 2000
+    for _ in range(trials):
+        control = rng.normal(-100.0, 8.0, 5)
+        treated = rng.normal(-90.0, 5.0, 5)
+        _, low, high, _ = relative_change(treated, control)
+        hits += low <= 10.0 <= high
+    assert 0.92 <= hits / trials <= 0.985
 
 
 def _kill_one_worker(killed: list[int], stop: threading.Event) -> None:

@@ -81,7 +81,7 @@ def test_resume_after_sigkill_gives_the_numbers_of_an_unbroken_run(unbroken, tin
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     process = subprocess.Popen([sys.executable, "-m", "roverswarm.cli", "train", *cli_args(config), "--out", str(out)], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 120
-    while not (out / "metrics.csv").exists() and time.time() < deadline and process.poll() is None:
+    while not (out / CHECKPOINT).exists() and time.time() < deadline and process.poll() is None:
         time.sleep(0.01)
     process.send_signal(signal.SIGKILL)
     process.wait()

@@ -570,8 +570,9 @@ def train(
                 )
                 last = chunk + 1 == chunks
                 if out is not None and (last or stop.raised or (chunk + 1 - first) % config.checkpoint_every == 0):
-                    save_checkpoint(out / CHECKPOINT, runner, replay=not last)
+                    # metrics first: a crash between the two leaves rows that resume trims
                     _write_metrics(out / METRICS, rows)
+                    save_checkpoint(out / CHECKPOINT, runner, replay=not last)
                 if stop.raised and not last:
                     if out is not None:
                         plot_learning_curve(rows, out / "learning_curve.png", f"{config.learner.algo} on {config.scenario}")

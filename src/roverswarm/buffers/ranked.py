@@ -60,7 +60,7 @@ class RankState:
     group_sums: jax.Array  # [N, C' / F] running sums of the groups' shares within each block of F groups
     block_cdf: jax.Array  # [N, C' / F^2] running sums of the blocks' shares
     ranked_size: jax.Array  # [] int32, transitions stored at the last refresh
-    ranked_weight: jax.Array  # [N] sum of (rank / C)^alpha over them
+    ranked_weight: jax.Array  # [N] sum of (rank / ranked_size)^alpha over them
     fresh: jax.Array  # [] int32, transitions added since the last refresh (<= C)
     fresh_start: jax.Array  # [] int32, ring position at the last refresh (the first fresh slot)
 
@@ -86,7 +86,8 @@ def _padded(capacity: int) -> int:
 def _refresh_agent(loss: jax.Array, size: jax.Array, capacity: int, alpha: float):
     """One agent's sampling table from its losses: (slot_sums, group_sums, block_cdf, total weight)."""
     ranks = average_ranks(loss, jnp.arange(capacity) < size)
-    weights = jnp.where(ranks > 0, (ranks / capacity) ** alpha, 0.0)  # eq. 12's numerator, scaled
+    # eq. 12's numerator, scaled by the top rank so that the largest weight is 1 for any alpha
+    weights = jnp.where(ranks > 0, (ranks / jnp.maximum(size, 1)) ** alpha, 0.0)
     total = weights.sum()
     share = jnp.pad(weights / jnp.maximum(total, 1e-30), (0, _padded(capacity) - capacity))
     slot_sums = jnp.cumsum(share.reshape(-1, FAN_OUT), axis=1)
@@ -98,18 +99,24 @@ def _descend(sums: jax.Array, row: jax.Array, target: jax.Array) -> tuple[jax.Ar
     """In row ``row`` (of F running sums) of ``sums``: the first j with sum > target, and the
     target minus the sums before j (where the draw falls inside entry j)."""
     values = sums.reshape(-1, FAN_OUT)[row]  # [B, F]
-    j = jnp.minimum(jnp.sum(values <= target[:, None], axis=1), FAN_OUT - 1)
+    # never past the row's last entry with a share (running sums differ from the level
+    # above in the last float32 bits, so the target can reach the row's total)
+    j = jnp.minimum(jnp.sum(values <= target[:, None], axis=1), jnp.argmax(values, axis=1))
     before = jnp.where(j > 0, jnp.take_along_axis(values, jnp.maximum(j - 1, 0)[:, None], axis=1)[:, 0], 0.0)
     return j, target - before
 
 
 def _fresh_share(extra: RankState, capacity: int, alpha: float) -> jax.Array:
-    """[N] share of the ranked part that goes to the fresh transitions (tied at the top)."""
-    n = extra.fresh.astype(jnp.float32)
+    """[N] share of the ranked part that goes to the fresh transitions (tied at the top).
+
+    Their weight is ``n * (top / M_r)^alpha`` beside the ranked ones' ``sum (rank / M_r)^alpha``,
+    compared in logs so that no alpha overflows."""
+    n = jnp.maximum(extra.fresh, 1).astype(jnp.float32)
+    ranked = jnp.maximum(extra.ranked_size, 1).astype(jnp.float32)
     top = extra.ranked_size.astype(jnp.float32) + (n + 1.0) / 2.0
-    fresh_weight = jnp.where(extra.fresh > 0, n * (top / capacity) ** alpha, 0.0)
-    share = fresh_weight / jnp.maximum(extra.ranked_weight + fresh_weight, 1e-30)
-    return jnp.where(extra.fresh >= capacity, 1.0, share)
+    log_ratio = jnp.log(jnp.maximum(extra.ranked_weight, 1e-30)) - jnp.log(n) - alpha * jnp.log(top / ranked)
+    share = jax.nn.sigmoid(-log_ratio)
+    return jnp.where(extra.fresh == 0, 0.0, jnp.where(extra.fresh >= capacity, 1.0, share))
 
 
 @functools.lru_cache(maxsize=None)
@@ -174,13 +181,18 @@ def ranked_buffer(capacity: int, batch_size: int, num_agents: int, alpha: float,
         return slot_sums[index] - previous
 
     def sample_agent(key, slot_sums, group_sums, block_cdf, fresh_share, size, fresh_count, fresh_start):
-        # two uniforms per draw: the first picks the part of P (uniform share, fresh top,
-        # ranked) and, rescaled, the ranked block; the second the slot within it
-        pick, within = jax.random.uniform(key, (2, batch_size))
+        # two random words per draw: the first picks the part of P (uniform share, fresh top,
+        # ranked) and, rescaled, the ranked block; the second the slot: by its 32 bits for
+        # the uniform and fresh parts (a float32 uniform has too few values to spread over
+        # 1e6 slots evenly), as a fraction within the ranked block
+        k_pick, k_slot = jax.random.split(key)
+        pick = jax.random.uniform(k_pick, (batch_size,))
+        bits = jax.random.bits(k_slot, (batch_size,), jnp.uint32)
+        within = jax.lax.bitcast_convert_type((bits >> 9) | jnp.uint32(0x3F800000), jnp.float32) - 1.0
         top = beta + (1.0 - beta) * fresh_share  # [0, beta): uniform, [beta, top): fresh
         fresh = jnp.maximum(fresh_count, 1)
-        uniform_index = jnp.floor(within * jnp.maximum(size, 1)).astype(jnp.int32)
-        fresh_index = (fresh_start + jnp.floor(within * fresh).astype(jnp.int32)) % capacity
+        uniform_index = (bits % jnp.maximum(size, 1).astype(jnp.uint32)).astype(jnp.int32)
+        fresh_index = (fresh_start + (bits % fresh.astype(jnp.uint32)).astype(jnp.int32)) % capacity
         rescaled = jnp.clip((pick - top) / jnp.maximum(1.0 - top, 1e-30), 0.0, 1.0)
         ranked_index = jnp.minimum(ranked_draw(slot_sums, group_sums, block_cdf, rescaled, within), capacity - 1)
         index = jnp.where(pick < beta, uniform_index, jnp.where(pick < top, fresh_index, ranked_index))

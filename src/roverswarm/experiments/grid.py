@@ -94,6 +94,8 @@ def plan(config: ReproduceConfig, base: TrainConfig = REFERENCE) -> list[Run]:
     require(len(config.scenarios) > 0, "--scenarios: give at least one scenario")
     for name in config.scenarios:
         require(name in SCENARIOS, f"--scenarios: unknown scenario '{name}'; known: {', '.join(SCENARIOS)}")
+    sizes = [SCENARIOS[name].params.num_rovers for name in config.scenarios]
+    require(len(set(sizes)) == len(sizes), "--scenarios: give each swarm size N once (the report compares by N)")
     require(len(set(config.algorithms)) == len(config.algorithms) > 0, "--algorithms: give each algorithm once")
     require(config.grid_seeds >= 1, f"--seeds must be >= 1, got {config.grid_seeds}")
     require(config.retries >= 0, f"--retries must be >= 0, got {config.retries}")
@@ -174,11 +176,16 @@ class Summary:
 # ----------------------------------------------------------------------------- backends
 
 
+def _episodes_done(run: Run) -> int:
+    rows = read_metrics(run.folder / METRICS) if (run.folder / METRICS).exists() else []
+    return int(max((r["episodes"] for r in rows), default=0))
+
+
 def run_local(runs: list[Run], summary: Summary) -> None:
     """Train ``runs`` one after another in this process (resuming interrupted ones)."""
     for run in runs:
         resume = status(run) == "partial"
-        summary.progress(run, 0)
+        summary.progress(run, _episodes_done(run) if resume else 0)
         train(run.config, out=run.folder, resume=resume, progress=False, on_chunk=lambda e, r=run: summary.progress(r, e))
         summary.finish(run)
 
@@ -196,7 +203,11 @@ def train_remote(config_json: str) -> dict[str, bytes]:
 
 def run_ray(runs: list[Run], summary: Summary, address: str | None, retries: int) -> None:
     """Send each run to a Ray cluster as one task (retried if its worker dies); write the
-    returned files into the run's folder as each task completes."""
+    returned files into the run's folder as each task completes.
+
+    A task trains its run from the start in the worker's scratch space (workers need not
+    share a file system), so a retried or previously interrupted run starts over there. The
+    summary shows submitted runs as running and updates as each one returns."""
     try:
         import ray
     except ImportError as error:
@@ -211,12 +222,16 @@ def run_ray(runs: list[Run], summary: Summary, address: str | None, retries: int
         ready, _ = ray.wait(list(pending), num_returns=1)
         run = pending.pop(ready[0])
         files = ray.get(ready[0])
-        if run.folder.exists():
-            shutil.rmtree(run.folder)
+        staging = run.folder.with_name(run.folder.name + ".incoming")  # whole folders only
+        if staging.exists():
+            shutil.rmtree(staging)
         for name, content in files.items():
-            path = run.folder / name
+            path = staging / name
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_bytes(content)
+        if run.folder.exists():
+            shutil.rmtree(run.folder)
+        staging.rename(run.folder)
         summary.finish(run)
 
 

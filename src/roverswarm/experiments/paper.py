@@ -9,9 +9,11 @@ Definitions (the paper's, made precise):
   the first row of a run is left out, since it includes compilation.
 
 Table I's relative changes compare MADDPG with the optimizer against plain MADDPG at each N:
-``100 * (mean_opt - mean_plain) / |mean_plain|``. The 95% interval is Welch's interval of
-the difference of means divided by ``|mean_plain|`` (seeds are the samples for rewards,
-1000-episode rows for time); the p-value is Welch's two-sided t-test.
+``100 * (mean_opt - mean_plain) / |mean_plain|``. Seeds are the samples for rewards,
+1000-episode rows for time. The 95% interval is the delta-method interval of that ratio
+(both means estimated) with Welch's degrees of freedom; the p-value is Welch's two-sided
+t-test of the difference. The time rows of one run are not independent (and a resumed run
+has one more row with compilation in it), so read the time intervals as indicative.
 """
 
 from __future__ import annotations
@@ -85,11 +87,12 @@ def relative_change(treated: np.ndarray, control: np.ndarray) -> tuple[float, fl
     if min(len(treated), len(control)) < 2:
         return change, float("nan"), float("nan"), float("nan")
     vt, vc = treated.var(ddof=1) / len(treated), control.var(ddof=1) / len(control)
-    se = np.sqrt(vt + vc)
-    if se == 0:
+    if vt + vc == 0:
         return change, change, change, float("nan")
     df = (vt + vc) ** 2 / (vt**2 / (len(treated) - 1) + vc**2 / (len(control) - 1))
-    half = stats.t.ppf(0.975, df) * se / scale
+    ratio = treated.mean() / control.mean()
+    se = np.sqrt(vt + ratio**2 * vc) / (100.0 * scale)  # delta method for mean_t / mean_c
+    half = 100.0 * stats.t.ppf(0.975, df) * se
     p = stats.ttest_ind(treated, control, equal_var=False).pvalue
     return change, change - half, change + half, float(p)
 
@@ -115,8 +118,8 @@ def table1(results: list[RunResult]) -> list[dict[str, float]]:
     return rows
 
 
-def _fmt(x: float, digits: int = 2) -> str:
-    return "n/a" if not np.isfinite(x) else f"{x:+.{digits}f}"
+def _fmt(x: float, digits: int = 2, suffix: str = "") -> str:
+    return "n/a" if not np.isfinite(x) else f"{x:+.{digits}f}{suffix}"
 
 
 def table1_markdown(rows: list[dict[str, float]]) -> str:
@@ -127,8 +130,8 @@ def table1_markdown(rows: list[dict[str, float]]) -> str:
     for r in rows:
         lines.append(
             f"| {r['rovers']} | {_fmt(r['reward_change_pct'])}% | [{_fmt(r['reward_ci_low'])}, {_fmt(r['reward_ci_high'])}] "
-            f"| {r['reward_p']:.3g} | +{r['paper_reward_change_pct']:.2f}% | {_fmt(r['time_change_pct'])}% "
-            f"| [{_fmt(r['time_ci_low'])}, {_fmt(r['time_ci_high'])}] | {r['time_p']:.3g} | +{r['paper_time_change_pct']:.2f}% |"
+            f"| {r['reward_p']:.3g} | {_fmt(r['paper_reward_change_pct'], suffix='%')} | {_fmt(r['time_change_pct'])}% "
+            f"| [{_fmt(r['time_ci_low'])}, {_fmt(r['time_ci_high'])}] | {r['time_p']:.3g} | {_fmt(r['paper_time_change_pct'], suffix='%')} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -253,7 +256,7 @@ def write_report(config: ReproduceConfig, results: list[RunResult], rows: list[d
 ## Table I: MADDPG + experience sample optimizer vs MADDPG
 
 {table1_markdown(rows)}
-Relative changes of the means, `100 * (optimizer - plain) / |plain|`; 95% Welch intervals;
+Relative changes of the means, `100 * (optimizer - plain) / |plain|`; 95% delta-method intervals (Welch df);
 two-sided Welch t-test p-values. Rewards: one maximum mean episode reward per seed.
 Time: one value per 1000-episode row (all seeds together), the first row of each run left out.
 
