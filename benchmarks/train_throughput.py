@@ -87,10 +87,11 @@ def update_seconds(config: TrainConfig, count: int) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="N = 3 only")
+    parser.add_argument("--rovers", type=int, nargs="+", default=[2, 3, 4, 5], help="swarm sizes N to measure")
     parser.add_argument("--chunks", type=int, default=3, help="timed chunks per configuration")
     args = parser.parse_args()
     enable_compilation_cache()
-    rover_counts = (3,) if args.quick else (2, 3, 4, 5)
+    rover_counts = (3,) if args.quick else tuple(args.rovers)
     chunks = args.chunks
     print(f"jax {jax.__version__} | {jax.devices()[0]} | 1 seed, 20 envs, replay 1e6\n")
     print("| N | algo | preset | s/1000 ep | update (ms) | updates/1000 ep | overhead | ranked s/1000 ep | ranked vs uniform | vs reference |")
