@@ -428,7 +428,7 @@ def metric_rows(config: TrainConfig, metrics: dict[str, np.ndarray], episodes: i
         for k in ("collisions", "trap_contacts", "coverage_distance"):
             row[k] = float(metrics[k][s])
         for k in LEARNER_METRICS:
-            row[k] = float(np.max(metrics[k][s]) if k.endswith("_max") else np.mean(metrics[k][s]))
+            row[k] = float(_reduce(k, metrics[k][s], None))
         row["wall_seconds"] = seconds
         rows.append(row)
     return rows

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Literal
 
-from rich.console import Console, Group
+from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
@@ -118,6 +118,11 @@ def plan(config: ReproduceConfig, base: TrainConfig = REFERENCE) -> list[Run]:
     return runs
 
 
+def _rows(run: Run) -> list[dict[str, float]]:
+    """The metrics rows ``run``'s folder holds so far."""
+    return read_metrics(run.folder / METRICS) if (run.folder / METRICS).exists() else []
+
+
 def status(run: Run) -> Literal["done", "partial", "new"]:
     """Whether ``run``'s folder holds its finished run, an interrupted one, or nothing.
 
@@ -130,8 +135,7 @@ def status(run: Run) -> Literal["done", "partial", "new"]:
         raise UserError(f"'{run.folder}' holds a run with other settings; rerun with --force to replace it, or choose another --out")
     if not (run.folder / CHECKPOINT).exists():
         return "new"
-    rows = read_metrics(run.folder / METRICS) if (run.folder / METRICS).exists() else []
-    finished = sum(1 for r in rows if r["episodes"] == run.config.episodes) == run.config.seeds
+    finished = sum(1 for r in _rows(run) if r["episodes"] == run.config.episodes) == run.config.seeds
     return "done" if finished else "partial"
 
 
@@ -157,7 +161,7 @@ class Summary:
         self.running.pop(run.name, None)
         self.done.add(run.name)
 
-    def __rich__(self) -> Group:
+    def __rich__(self) -> Table:
         left = [r for r in self.runs if r.name not in self.done]
         todo = sum((r.config.episodes - self.running.get(r.name, 0)) * r.config.seeds for r in left)
         elapsed = time.perf_counter() - self.started
@@ -170,15 +174,14 @@ class Summary:
             state = "done" if r.name in self.done else ("running" if r.name in self.running else "queued")
             episodes = r.config.episodes if state == "done" else self.running.get(r.name, 0)
             table.add_row(r.name, state, f"{episodes}/{r.config.episodes}")
-        return Group(table)
+        return table
 
 
 # ----------------------------------------------------------------------------- backends
 
 
 def _episodes_done(run: Run) -> int:
-    rows = read_metrics(run.folder / METRICS) if (run.folder / METRICS).exists() else []
-    return int(max((r["episodes"] for r in rows), default=0))
+    return int(max((r["episodes"] for r in _rows(run)), default=0))
 
 
 def run_local(runs: list[Run], summary: Summary) -> None:
