@@ -6,7 +6,7 @@ on batches of 1024, 2x64 networks), one seed, 20 parallel environments, replay 1
 
 * ``s/1000 ep``: wall seconds of one jitted training chunk of 1000 episodes (environment,
   replay writes and samples, updates), timed after the warm-up so every chunk has all its
-  updates; the median of ``--chunks`` chunks.
+  updates; the median of ``--chunks`` chunks (uniform and ranked chunks alternate).
 * ``update``: the bare jitted update of all agents on a fixed batch (a chunk's worth of
   them in one ``lax.scan``), i.e. the floor the chunk cannot go below.
 * ``overhead``: ``1 - updates * update / chunk``, the share of everything else. Target <= 25%.
@@ -39,22 +39,28 @@ from roverswarm.train import PRESETS, TrainConfig, init_runner, make_buffer, run
 REFERENCE_SECONDS_N3 = 90.0
 
 
-def chunk_seconds(config: TrainConfig, chunks: int) -> float:
-    """Median wall seconds of a 1000-episode chunk once updates run in every iteration."""
-    params = validate(config)
-    buffer = make_buffer(config, params)
-    runner = init_runner(config, params, buffer)
-    warm_chunks = -(-config.warmup // (config.log_every * params.max_steps)) + 1
-    for _ in range(warm_chunks):  # compile, and fill the replay past the warm-up
-        runner, metrics = run_chunk(config, params, buffer, runner)
-    jax.block_until_ready(metrics)
-    times = []
-    for _ in range(chunks):
-        start = time.perf_counter()
-        runner, metrics = run_chunk(config, params, buffer, runner)
+def chunk_seconds(configs: list[TrainConfig], chunks: int) -> list[float]:
+    """Median wall seconds of a 1000-episode chunk of each config, once updates run in every
+    iteration. The configs' chunks alternate, so a change in the machine's load hits them alike."""
+    runs = []
+    for config in configs:
+        params = validate(config)
+        buffer = make_buffer(config, params)
+        runner = init_runner(config, params, buffer)
+        warm_chunks = -(-config.warmup // (config.log_every * params.max_steps)) + 1
+        for _ in range(warm_chunks):  # compile, and fill the replay past the warm-up
+            runner, metrics = run_chunk(config, params, buffer, runner)
         jax.block_until_ready(metrics)
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+        runs.append([config, params, buffer, runner])
+    times = [[] for _ in configs]
+    for _ in range(chunks):
+        for run, spent in zip(runs, times):
+            config, params, buffer, runner = run
+            start = time.perf_counter()
+            run[3], metrics = run_chunk(config, params, buffer, runner)
+            jax.block_until_ready(metrics)
+            spent.append(time.perf_counter() - start)
+    return [statistics.median(spent) for spent in times]
 
 
 def update_seconds(config: TrainConfig, count: int) -> float:
@@ -102,9 +108,8 @@ def main() -> None:
                 config = dataclasses.replace(base, scenario=f"paper-{n}", learner=dataclasses.replace(base.learner, algo=algo))
                 params = validate(config)
                 updates = config.log_every * params.max_steps // config.update_every
-                chunk = chunk_seconds(config, chunks)
+                chunk, ranked = chunk_seconds([config, dataclasses.replace(config, replay="ranked")], chunks)
                 bare = update_seconds(config, updates)
-                ranked = chunk_seconds(dataclasses.replace(config, replay="ranked"), chunks)
                 overhead = 1.0 - updates * bare / chunk
                 versus = f"{REFERENCE_SECONDS_N3 / chunk:.0f}x" if n == 3 and preset == "reference" else "-"
                 print(
