@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from roverswarm.env import EnvParams, EnvState, get_scenario, observe, reset, step, step_env, validate_params
-from roverswarm.env.mars import observation_size
+from roverswarm.env.mars import NEVER, observation_size
 from roverswarm.errors import UserError
 
 
@@ -22,6 +22,7 @@ def make_state(rover_pos, rover_vel=None, poi_pos=(), trap_pos=()) -> EnvState:
         trap_pos=jnp.asarray(trap_pos, jnp.float32).reshape(-1, 2),
         observed=jnp.zeros((poi_pos.shape[0],), bool),
         time=jnp.zeros((), jnp.int32),
+        fail_step=jnp.full((rover_pos.shape[0],), NEVER, jnp.int32),
     )
 
 

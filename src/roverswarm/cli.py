@@ -65,6 +65,71 @@ class EvaluateCommand:
     """Seed of the evaluation episodes."""
 
 
+@dataclass(frozen=True)
+class MissionRunCommand:
+    """Run a swarm on a mission file: trajectories, an animation, a map of routes, metrics."""
+
+    mission: tyro.conf.Positional[Path]
+    """Mission file (YAML or JSON; see examples/mission.yaml)."""
+    policy: str = "oracle"
+    """`oracle`, `random`, or a run folder of `roverswarm train` (same numbers of rovers, POIs, traps)."""
+    out: Path = Path("mission-out")
+    """Output folder: trajectories.csv, metrics.csv, metrics.md, routes.png, mission.gif."""
+    fail: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
+    """ROVER@STEP: freeze that rover from that step on."""
+    episodes: int = 1
+    """Episodes to run (they differ when the mission has a release zone or the policy is random); files show episode 0."""
+    seed: int = 0
+    """Seed of the episodes (release-zone starts, random policy)."""
+    policy_seed: int = 0
+    """Which seed of a trained run drives the rovers."""
+    animation: Literal["gif", "mp4"] = "gif"
+    """Animation format."""
+
+
+@dataclass(frozen=True)
+class MissionStressCommand:
+    """Many episodes with one random rover failing at a random step: how success and time to
+    observe all degrade, for the policy beside the oracle."""
+
+    mission: tyro.conf.Positional[Path]
+    """Mission file (YAML or JSON)."""
+    policy: str = "oracle"
+    """`oracle`, `random`, or a run folder of `roverswarm train`."""
+    out: Path = Path("mission-stress")
+    """Output folder: stress.csv, stress.md, stress.png."""
+    episodes: int = 500
+    """Episodes per policy and condition."""
+    seed: int = 0
+    """Seed of the episodes and of the failures."""
+    policy_seed: int = 0
+    """Which seed of a trained run drives the rovers."""
+
+
+@dataclass(frozen=True)
+class MissionCommand:
+    """Missions: scientists' POIs and traps in; routes, animations and mission metrics out."""
+
+    action: Union[
+        Annotated[MissionRunCommand, tyro.conf.subcommand(name="run")],
+        Annotated[MissionStressCommand, tyro.conf.subcommand(name="stress")],
+    ]
+
+
+def run_mission(cmd: MissionCommand) -> None:
+    from roverswarm.mission import markdown_table, run_mission, stress_mission
+
+    action, console = cmd.action, Console()
+    if isinstance(action, MissionRunCommand):
+        result = run_mission(action.mission, action.policy, action.out, action.fail, action.episodes, action.seed, action.policy_seed, action.animation)
+        console.print(result.files["metrics.md"].read_text(), markup=False)
+        console.print(f"wrote {', '.join(str(p) for p in result.files.values())}")
+    else:
+        rows = stress_mission(action.mission, action.policy, action.out, action.episodes, action.seed, action.policy_seed)
+        console.print(markdown_table(list(rows[0]), [list(r.values()) for r in rows]), markup=False)
+        console.print(f"wrote {action.out / 'stress.md'}, stress.csv and stress.png")
+
+
 def _flat_fields(config) -> dict[str, object]:
     """Every leaf field of a (nested) config dataclass, by name."""
     flat: dict[str, object] = {}
@@ -147,6 +212,7 @@ COMMANDS: dict[str, tuple[type, Callable]] = {
     "train": (TrainCommand, run_train),
     "evaluate": (EvaluateCommand, run_evaluate),
     "reproduce": (ReproduceCommand, run_reproduce),
+    "mission": (MissionCommand, run_mission),
 }
 
 
@@ -175,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
     cmd = tyro.cli(
         Union[commands],  # type: ignore[valid-type]
         prog="roverswarm",
-        config=(tyro.conf.OmitArgPrefixes,),
+        config=(tyro.conf.OmitArgPrefixes, tyro.conf.OmitSubcommandPrefixes),
         description="Multi-agent reinforcement learning of rover swarms exploring a planetary surface.",
         args=argv,
     )

@@ -23,9 +23,8 @@ import numpy as np
 
 from roverswarm.env.mars import EnvParams, EnvState, reset, step_env
 from roverswarm.errors import require
-from roverswarm.env.scenarios import get_scenario
 from roverswarm.policies import ORACLE, RANDOM, ActFn, Plan, Policy, trained_policy
-from roverswarm.train import load_run
+from roverswarm.train import load_run, validate
 
 
 @dataclass(frozen=True)
@@ -63,12 +62,14 @@ class Rollout:
 
 
 def _run_episode(act: ActFn, key: jax.Array, obs: jax.Array, state: EnvState, plan: Plan, weights, params: EnvParams):
-    """One episode of at most ``max_steps``; steps after a termination contribute nothing."""
+    """One episode of at most ``max_steps``; after a termination the state stands still and
+    the steps contribute nothing."""
 
     def body(carry, step_key):
         obs, state, done = carry
         actions = act(step_key, obs, state, plan, weights, params)
-        obs, state, rewards, terminated, _, info = step_env(state, actions, params)
+        next_obs, next_state, rewards, terminated, _, info = step_env(state, actions, params)
+        obs, state = jax.tree.map(lambda old, new: jnp.where(done, old, new), (obs, state), (next_obs, next_state))
         live = 1.0 - done.astype(jnp.float32)
         out = {
             "rewards": rewards * live,
@@ -93,13 +94,18 @@ def _rollout_batch(act: ActFn, keys: jax.Array, obs: jax.Array, states: EnvState
 _reset_batch = jax.jit(jax.vmap(reset, in_axes=(0, None)))
 
 
-def rollout(policy: Policy, key: jax.Array, params: EnvParams, num_episodes: int) -> Rollout:
+def rollout(policy: Policy, key: jax.Array, params: EnvParams, num_episodes: int, fail_step=None) -> Rollout:
     """Run ``policy`` for ``num_episodes`` independent episodes (vmapped) and collect metrics.
 
-    Same key, policy and params => identical results.
+    ``fail_step`` ([N] or [E, N] int, :data:`~roverswarm.env.mars.NEVER` for a working rover)
+    freezes rover i from step ``fail_step[i]`` on. Same key, policy, params and failures =>
+    identical results.
     """
     reset_key, run_key = jax.random.split(key)
     obs, states = _reset_batch(jax.random.split(reset_key, num_episodes), params)
+    if fail_step is not None:
+        fail = jnp.broadcast_to(jnp.asarray(fail_step, jnp.int32), states.fail_step.shape)
+        states = states.replace(fail_step=fail)
     plan = policy.plan(states, params)
     out = jax.device_get(
         _rollout_batch(policy.act, jax.random.split(run_key, num_episodes), obs, states, plan, policy.weights, params)
@@ -126,6 +132,37 @@ def rollout(policy: Policy, key: jax.Array, params: EnvParams, num_episodes: int
     )
 
 
+@dataclass(frozen=True)
+class MissionStats:
+    """What a mission planner asks of each episode of a rollout (times in steps, NaN: never).
+
+    A mission *succeeds* when every POI was observed (a rover's centre within the POI's
+    observation radius) before the episode ended; collisions and trap contacts are counted
+    beside it, not folded into it."""
+
+    first_observed: np.ndarray  # [E, P] step of each POI's first observation (0: at the start)
+    time_to_all: np.ndarray  # [E] step at which the last POI was first observed
+    path_length: np.ndarray  # [E, N] distance each rover drove
+    collisions: np.ndarray  # [E]
+    trap_contacts: np.ndarray  # [E]
+    success: np.ndarray  # [E] bool
+
+    @classmethod
+    def of(cls, data: Rollout) -> MissionStats:
+        observed = data.observed  # [E, T + 1, P]
+        first = np.where(observed.any(axis=1), observed.argmax(axis=1), np.nan)
+        success = observed[:, -1].all(axis=-1)
+        latest = first.max(axis=1, initial=0.0)
+        return cls(
+            first_observed=first,
+            time_to_all=np.where(success, latest, np.nan),
+            path_length=np.linalg.norm(np.diff(data.rover_pos, axis=1), axis=-1).sum(axis=1),
+            collisions=data.stats.collisions,
+            trap_contacts=data.stats.trap_contacts,
+            success=success,
+        )
+
+
 def normalized_score(reward: float, random_reward: float, oracle_reward: float) -> float:
     """``(R - R_random) / (R_oracle - R_random)``: 0 is random, 1 is the oracle."""
     return (reward - random_reward) / (oracle_reward - random_reward)
@@ -140,7 +177,7 @@ def evaluate_run(out, episodes: int = 1000, seed: int = 0) -> list[dict[str, flo
     """
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
     config, learner = load_run(out)
-    params = get_scenario(config.scenario)
+    params = validate(config)
     key = jax.random.PRNGKey(seed)
     policies = [
         trained_policy(config.learner, jax.tree.map(lambda x: x[s], learner.actor), f"{config.learner.algo} seed {s}")

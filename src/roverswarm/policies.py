@@ -12,7 +12,8 @@ A :class:`Policy` has two parts:
 The oracle assigns rovers to POIs by the Hungarian method (minimum total distance, SciPy's
 ``linear_sum_assignment``) and then drives each rover to its POI with a go-to-goal
 controller on the known dynamics that heads along the tangent of any trap or other rover
-in its way. It is a strong yardstick, not a perfect one: in crowded layouts rovers still
+in its way. A rover whose POI is observed takes over any POI left open, by a failed rover or
+because there are more POIs than rovers (:func:`oracle_goals`). It is a strong yardstick, not a perfect one: in crowded layouts rovers still
 brush each other or a crater now and then (about 0.3 trap contacts per episode on
 ``paper-3`` and 1.7 on ``paper-5``, against 5 and 13 for the random policy).
 """
@@ -26,6 +27,7 @@ from typing import Any, Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import struct
 from scipy.optimize import linear_sum_assignment
 
 from roverswarm.algos.maddpg import AlgoConfig, act
@@ -68,24 +70,55 @@ _KEEP_OUT_MARGIN = 0.05
 _APPROACH_STEPS = 2.0
 
 
-def assign_goals(rover_pos: np.ndarray, poi_pos: np.ndarray) -> np.ndarray:
+def assign_pois(rover_pos: np.ndarray, poi_pos: np.ndarray) -> np.ndarray:
     """Optimal assignment (Hungarian method) of rovers ``[N, 2]`` to POIs ``[P, 2]``.
 
-    Minimises the total rover-to-POI distance. Returns goals ``[N, 2]``; a rover left without
-    a POI (N > P) keeps its start position as its goal.
+    Minimises the total rover-to-POI distance. Returns the POI index of each rover ``[N]``,
+    -1 for a rover left without one (N > P).
     """
-    goals = np.array(rover_pos, dtype=np.float32, copy=True)
+    assigned = np.full(len(rover_pos), -1, dtype=np.int32)
     if len(poi_pos):
         cost = np.linalg.norm(rover_pos[:, None, :] - poi_pos[None, :, :], axis=-1)
         rows, cols = linear_sum_assignment(cost)
-        goals[rows] = poi_pos[cols]
-    return goals
+        assigned[rows] = cols
+    return assigned
 
 
-def _oracle_plan(states: EnvState, params: EnvParams) -> jax.Array:
+@struct.dataclass
+class OraclePlan:
+    """Per episode: each rover's assigned POI (-1: none) and its start (where a rover with
+    nothing to do waits)."""
+
+    poi: jax.Array  # [N] int32
+    home: jax.Array  # [N, 2]
+
+
+def _oracle_plan(states: EnvState, params: EnvParams) -> OraclePlan:
     rover = np.asarray(states.rover_pos)
     poi = np.asarray(states.poi_pos)
-    return jnp.asarray(np.stack([assign_goals(r, p) for r, p in zip(rover, poi)]))
+    return OraclePlan(poi=jnp.asarray(np.stack([assign_pois(r, p) for r, p in zip(rover, poi)])), home=jnp.asarray(rover))
+
+
+def oracle_goals(state: EnvState, plan: OraclePlan, params: EnvParams) -> jax.Array:
+    """[N, 2] where each rover heads now.
+
+    A rover heads for its assigned POI. Once that POI is observed (or if it has none) it is
+    free: it heads for the nearest *open* POI, one not yet observed that no working rover is
+    assigned to (because that rover failed, or because there are more POIs than rovers), and
+    otherwise stays at its assigned POI (or its start). With every rover working and at
+    least as many rovers as POIs nothing is ever open, so this is the plain assignment.
+    """
+    working = state.time < state.fail_step  # [N]
+    has_poi = plan.poi >= 0
+    index = jnp.maximum(plan.poi, 0)
+    assigned = jnp.where(has_poi[:, None], state.poi_pos[index], plan.home)
+    claimed = jnp.zeros(params.num_pois, bool).at[index].max(has_poi & working & ~state.observed[index])
+    open_poi = ~state.observed & ~claimed  # [P]
+    free = ~has_poi | state.observed[index]
+    dist = jnp.linalg.norm(state.rover_pos[:, None, :] - state.poi_pos[None, :, :], axis=-1)  # [N, P]
+    nearest = jnp.argmin(jnp.where(open_poi[None, :], dist, jnp.inf), axis=1)
+    retarget = free & jnp.any(open_poi)
+    return jnp.where(retarget[:, None], state.poi_pos[nearest], assigned)
 
 
 def _steer_around(pos: jax.Array, vel_des: jax.Array, goal: jax.Array, obstacles: jax.Array, keep_out: jax.Array) -> jax.Array:
@@ -119,7 +152,8 @@ def _steer_around(pos: jax.Array, vel_des: jax.Array, goal: jax.Array, obstacles
     return heading * speed
 
 
-def _oracle_act(key: jax.Array, obs: jax.Array, state: EnvState, goal: jax.Array, weights: Any, params: EnvParams) -> jax.Array:
+def _oracle_act(key: jax.Array, obs: jax.Array, state: EnvState, plan: OraclePlan, weights: Any, params: EnvParams) -> jax.Array:
+    goal = oracle_goals(state, plan, params)
     decay = 1.0 - params.damping
     gain = params.sensitivity / params.mass * params.dt  # velocity change per unit action
     # the current velocity moves the rover this step whatever we do; steer from there

@@ -38,6 +38,7 @@ from roverswarm.algos.maddpg import ALGOS, AlgoConfig, LearnerState, act, init_l
 from roverswarm.buffers.ranked import ranked_buffer
 from roverswarm.buffers.uniform import Buffer, BufferState, Transition, importance_weights, newest_fraction, uniform_buffer
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, reset, step_env
+from roverswarm.env.missions import load_mission
 from roverswarm.env.scenarios import get_scenario
 from roverswarm.errors import RunStopped, UserError, require
 
@@ -53,6 +54,9 @@ class TrainConfig:
 
     scenario: str = "paper-3"
     """Scenario preset (see `roverswarm scenarios`)."""
+    mission: str | None = None
+    """Mission file (YAML/JSON) to train on instead of --scenario: its POIs and traps fixed,
+    rover starts drawn anywhere in the map, fixed-length episodes."""
     learner: AlgoConfig = field(default_factory=AlgoConfig)
     episodes: int = 60_000
     """Training episodes per seed (a multiple of --log-every)."""
@@ -92,6 +96,10 @@ class TrainConfig:
     checkpoint_every: int = 10
     """Chunks (of --log-every episodes) between checkpoints; one is always written at the end."""
 
+    def env_name(self) -> str:
+        """What the run trains on: the scenario, or the mission file's name."""
+        return self.scenario if self.mission is None else f"mission {Path(self.mission).stem}"
+
 
 REFERENCE = TrainConfig(
     learner=AlgoConfig(actor_lr=1e-2, critic_lr=1e-2, gamma=0.95, tau=0.01, grad_clip=0.5, hidden=(64, 64), action_penalty=1e-3),
@@ -112,7 +120,7 @@ PRESETS: dict[str, TrainConfig] = {"default": TrainConfig(), "reference": REFERE
 
 def validate(config: TrainConfig) -> EnvParams:
     """Check ``config``; raise :class:`UserError` naming the bad field. Returns the env params."""
-    params = get_scenario(config.scenario)
+    params = get_scenario(config.scenario) if config.mission is None else load_mission(config.mission).training_params()
     learner = config.learner
     require(learner.algo in ALGOS, f"--algo must be one of {', '.join(ALGOS)}, got '{learner.algo}'")
     require(config.replay in ("uniform", "ranked"), f"--replay must be 'uniform' or 'ranked', got '{config.replay}'")
@@ -542,7 +550,7 @@ def train(
     try:
         with bar, _StopFlag() as stop:
             task = bar.add_task(
-                f"{config.learner.algo} {config.scenario}", total=config.episodes, completed=first * config.log_every,
+                f"{config.learner.algo} {config.env_name()}", total=config.episodes, completed=first * config.log_every,
                 reward="-", rate="-",
             )
             for chunk in range(first, chunks):
@@ -575,14 +583,14 @@ def train(
                     save_checkpoint(out / CHECKPOINT, runner, replay=not last)
                 if stop.raised and not last:
                     if out is not None:
-                        plot_learning_curve(rows, out / "learning_curve.png", f"{config.learner.algo} on {config.scenario}")
+                        plot_learning_curve(rows, out / "learning_curve.png", f"{config.learner.algo} on {config.env_name()}")
                     where = f"checkpoint saved; continue with: roverswarm train --resume {out}" if out else "nothing saved (no --out)"
                     raise RunStopped(f"interrupted at episode {episodes}; {where}")
     finally:  # flush TensorBoard also when the run stops early
         if writer is not None:
             writer.close()
     if out is not None:
-        plot_learning_curve(rows, out / "learning_curve.png", f"{config.learner.algo} on {config.scenario}")
+        plot_learning_curve(rows, out / "learning_curve.png", f"{config.learner.algo} on {config.env_name()}")
     return Result(config=config, metrics=rows, learner=runner.learner, out=out)
 
 

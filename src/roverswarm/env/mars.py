@@ -54,7 +54,7 @@ class EnvParams:
     rover_radius: float = 0.15
     poi_radius: float = 0.05  # drawn size only: POIs never collide
     trap_radius: float = 0.1  # scalar, or [T] per trap
-    observe_radius: float = 0.1  # a POI is observed when a rover's centre is this close
+    observe_radius: float = 0.1  # a POI is observed when a rover's centre is this close; scalar or [P]
     dt: float = 0.1
     damping: float = 0.25
     mass: float = 1.0
@@ -63,6 +63,11 @@ class EnvParams:
     contact_margin: float = 1e-3
     collision_penalty: float = 1.0  # reward per rover touched per step
     trap_penalty: float = 1.0  # reward per trap touched per step
+    # A fixed layout (mission files): each None is drawn at reset instead.
+    fixed_pois: jax.Array | None = None  # [P, 2]
+    fixed_traps: jax.Array | None = None  # [T, 2]
+    fixed_starts: jax.Array | None = None  # [N, 2]
+    start_zone: jax.Array | None = None  # [2, 2] low and high corner of the rovers' release zone (default: the map)
 
 
 @struct.dataclass
@@ -75,6 +80,11 @@ class EnvState:
     trap_pos: jax.Array  # [T, 2]
     observed: jax.Array  # [P] bool, POI observed at some step of this episode
     time: jax.Array  # [] int32, steps taken in this episode
+    fail_step: jax.Array  # [N] int32, rover i is frozen from step fail_step[i] on (NEVER: it never fails)
+
+
+NEVER = np.iinfo(np.int32).max
+"""``fail_step`` of a rover that does not fail."""
 
 
 def observation_size(params: EnvParams) -> int:
@@ -89,9 +99,10 @@ def validate_params(params: EnvParams) -> EnvParams:
         value = getattr(params, name)
         require(value >= 0, f"{name} must be >= 0, got {value}")
     require(params.max_steps >= 1, f"max_steps must be >= 1, got {params.max_steps}")
-    for name in ("map_size", "rover_radius", "poi_radius", "observe_radius", "dt", "mass"):
+    for name in ("map_size", "rover_radius", "poi_radius", "dt", "mass"):
         value = float(getattr(params, name))
         require(value > 0, f"{name} must be positive, got {value}")
+    require(bool(np.all(np.asarray(params.observe_radius) > 0)), f"observe_radius must be positive, got {params.observe_radius}")
     trap_radius = np.asarray(params.trap_radius, dtype=float)
     require(
         trap_radius.ndim == 0 or trap_radius.shape == (params.num_traps,),
@@ -99,6 +110,17 @@ def validate_params(params: EnvParams) -> EnvParams:
         f"got shape {trap_radius.shape}",
     )
     require(bool(np.all(trap_radius > 0)), f"trap_radius must be positive, got {trap_radius}")
+    observe_radius = np.asarray(params.observe_radius, dtype=float)
+    require(
+        observe_radius.ndim == 0 or observe_radius.shape == (params.num_pois,),
+        f"observe_radius must be a number or one value per POI ({params.num_pois}), got shape {observe_radius.shape}",
+    )
+    for name, rows in (("fixed_pois", params.num_pois), ("fixed_traps", params.num_traps), ("fixed_starts", params.num_rovers), ("start_zone", 2)):
+        value = getattr(params, name)
+        require(
+            value is None or np.shape(value) == (rows, 2),
+            f"{name} must be None or an array of shape ({rows}, 2), got shape {np.shape(value)}",
+        )
     require(0 <= params.damping < 1, f"damping must be in [0, 1), got {params.damping}")
     return params
 
@@ -106,6 +128,11 @@ def validate_params(params: EnvParams) -> EnvParams:
 def trap_radii(params: EnvParams) -> jax.Array:
     """[T] radius of each trap (``trap_radius`` broadcast)."""
     return jnp.broadcast_to(jnp.asarray(params.trap_radius, jnp.float32), (params.num_traps,))
+
+
+def observe_radii(params: EnvParams) -> jax.Array:
+    """[P] observation radius of each POI (``observe_radius`` broadcast)."""
+    return jnp.broadcast_to(jnp.asarray(params.observe_radius, jnp.float32), (params.num_pois,))
 
 
 def _pairwise_dist(a: jax.Array, b: jax.Array) -> jax.Array:
@@ -128,28 +155,38 @@ def _first_clear(candidates: jax.Array, obstacles: jax.Array, clearance: jax.Arr
 def reset(key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
     """Start an episode: POIs, then traps clear of POIs, then rovers clear of traps.
 
-    All positions are uniform in the map. A trap keeps ``trap_radius + rover_radius`` away from
-    every POI (so a rover sitting on a POI touches no trap) and a rover starts outside every
-    trap; each uses the first of 16 uniform candidates that satisfies this.
+    Positions are uniform in the map (rovers: in ``start_zone`` if set) unless the params fix
+    them (``fixed_pois``, ``fixed_traps``, ``fixed_starts``: a mission's layout). A drawn trap
+    keeps ``trap_radius + rover_radius`` away from every POI (so a rover sitting on a POI
+    touches no trap) and a drawn rover starts outside every trap; each uses the first of 16
+    uniform candidates that satisfies this. No rover has failed (``fail_step`` is NEVER).
 
     Returns ``(obs [N, O], state)``.
     """
     n, p, t = params.num_rovers, params.num_pois, params.num_traps
     k_poi, k_trap, k_rover = jax.random.split(key, 3)
     size = params.map_size
-    poi_pos = jax.random.uniform(k_poi, (p, 2), minval=-size, maxval=size)
+    poi_pos = params.fixed_pois
+    if poi_pos is None:
+        poi_pos = jax.random.uniform(k_poi, (p, 2), minval=-size, maxval=size)
     trap_radius = trap_radii(params)
-    trap_cand = jax.random.uniform(k_trap, (t, _LAYOUT_CANDIDATES, 2), minval=-size, maxval=size)
-    trap_pos = _first_clear(trap_cand, poi_pos, (trap_radius + params.rover_radius)[:, None, None])
-    rover_cand = jax.random.uniform(k_rover, (n, _LAYOUT_CANDIDATES, 2), minval=-size, maxval=size)
-    rover_pos = _first_clear(rover_cand, trap_pos, trap_radius + params.rover_radius)
+    trap_pos = params.fixed_traps
+    if trap_pos is None:
+        trap_cand = jax.random.uniform(k_trap, (t, _LAYOUT_CANDIDATES, 2), minval=-size, maxval=size)
+        trap_pos = _first_clear(trap_cand, poi_pos, (trap_radius + params.rover_radius)[:, None, None])
+    rover_pos = params.fixed_starts
+    if rover_pos is None:
+        low, high = (-size, size) if params.start_zone is None else (params.start_zone[0], params.start_zone[1])
+        rover_cand = jax.random.uniform(k_rover, (n, _LAYOUT_CANDIDATES, 2), minval=low, maxval=high)
+        rover_pos = _first_clear(rover_cand, trap_pos, trap_radius + params.rover_radius)
     state = EnvState(
-        rover_pos=rover_pos,
+        rover_pos=jnp.asarray(rover_pos, jnp.float32),
         rover_vel=jnp.zeros((n, 2)),
-        poi_pos=poi_pos,
-        trap_pos=trap_pos,
+        poi_pos=jnp.asarray(poi_pos, jnp.float32),
+        trap_pos=jnp.asarray(trap_pos, jnp.float32),
         observed=jnp.zeros((p,), bool),
         time=jnp.zeros((), jnp.int32),
+        fail_step=jnp.full((n,), NEVER, jnp.int32),
     )
     state = state.replace(observed=_observed_now(state, params))
     return observe(state, params), state
@@ -176,7 +213,7 @@ def observe(state: EnvState, params: EnvParams) -> jax.Array:
 
 def _observed_now(state: EnvState, params: EnvParams) -> jax.Array:
     return state.observed | jnp.any(
-        _pairwise_dist(state.rover_pos, state.poi_pos) < params.observe_radius, axis=0
+        _pairwise_dist(state.rover_pos, state.poi_pos) < observe_radii(params), axis=0
     )
 
 
@@ -206,6 +243,9 @@ def step_env(
 ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, jax.Array, dict[str, jax.Array]]:
     """Advance one step without auto-reset. ``actions`` is ``[N, 2]``, clipped to [-1, 1].
 
+    A failed rover (``state.time >= state.fail_step``) stays where it is, whatever its action
+    and whatever pushes it; it still counts in contacts and coverage.
+
     Returns ``(obs [N, O], state, rewards [N], terminated [], truncated [], info)`` where info
     holds ``collisions`` [N] (other rovers touched), ``trap_contacts`` [N] (traps touched),
     ``coverage_distance`` [] (sum over POIs of the nearest rover's distance) and
@@ -216,6 +256,9 @@ def step_env(
     force = force + contact_forces(state.rover_pos, params)
     pos = state.rover_pos + state.rover_vel * params.dt
     vel = state.rover_vel * (1.0 - params.damping) + force / params.mass * params.dt
+    frozen = (state.time >= state.fail_step)[:, None]
+    pos = jnp.where(frozen, state.rover_pos, pos)
+    vel = jnp.where(frozen, 0.0, vel)
     state = state.replace(rover_pos=pos, rover_vel=vel, time=state.time + 1)
     state = state.replace(observed=_observed_now(state, params))
 

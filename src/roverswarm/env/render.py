@@ -17,7 +17,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
-from roverswarm.env.mars import EnvParams, trap_radii
+from roverswarm.env.mars import EnvParams, observe_radii, trap_radii
 from roverswarm.errors import UserError
 from roverswarm.evaluate import Rollout, rollout
 from roverswarm.policies import Policy
@@ -57,8 +57,8 @@ class FrameRenderer:
         ax.plot([-size, size, size, -size, -size], [-size, -size, size, size, -size], color="#b08060", lw=1)
         for (x, y), r in zip(trap_pos, np.asarray(trap_radii(p))):
             ax.add_patch(Circle((x, y), r, color="#5a3a22", alpha=0.85))
-        for (x, y), seen in zip(poi_pos, observed):
-            ax.add_patch(Circle((x, y), float(p.observe_radius), fill=False, ls="--", color="#2e7d32", lw=0.8))
+        for (x, y), seen, radius in zip(poi_pos, observed, np.asarray(observe_radii(p))):
+            ax.add_patch(Circle((x, y), float(radius), fill=False, ls="--", color="#2e7d32", lw=0.8))
             ax.add_patch(Circle((x, y), float(p.poi_radius), color="#2e7d32", fill=bool(seen), lw=1.5))
         for i in range(trail.shape[1]):
             color = _ROVER_COLORS[i % len(_ROVER_COLORS)]

@@ -1,0 +1,166 @@
+"""Mission files: the points of interest and traps scientists picked, as a fixed layout.
+
+A mission file is YAML or JSON (see ``examples/mission.yaml``)::
+
+    name: jezero-delta            # optional
+    map_size: 1.0                 # half-width: the map is [-map_size, map_size]^2 (default 1)
+    episode_length: 25            # steps (default 25)
+    stop_when_complete: true      # end the episode once every POI is observed (default true)
+    rovers:                       # either fixed starts ...
+      start: [[-0.8, -0.8], [0.0, -0.8], [0.8, -0.8]]
+    # rovers: {count: 3, release_zone: {low: [-1, -1], high: [1, -0.6]}}   # ... or a zone
+    pois:
+      - {name: olivine-outcrop, position: [-0.5, 0.6], radius: 0.1}   # radius: observation radius (default 0.1)
+    traps:
+      - {position: [0.0, 0.1], radius: 0.12}                          # radius default 0.1
+
+Every mistake is one :class:`~roverswarm.errors.UserError` that names the entry: a missing
+or unknown field, a POI, trap or start outside the map, a non-positive radius, a start that
+overlaps a trap or another rover. The environment itself is unchanged: a mission is
+:class:`~roverswarm.env.mars.EnvParams` with ``fixed_pois``, ``fixed_traps`` and
+``fixed_starts`` or ``start_zone`` set.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from roverswarm.env.mars import EnvParams, validate_params
+from roverswarm.errors import UserError, require
+
+_TOP_FIELDS = {"name", "map_size", "episode_length", "stop_when_complete", "rovers", "pois", "traps"}
+_DEFAULT_RADIUS = {"pois": 0.1, "traps": 0.1}
+
+
+@dataclass(frozen=True)
+class Mission:
+    """A validated mission: its name, the environment with its layout, and the POIs' names."""
+
+    name: str
+    params: EnvParams
+    poi_names: tuple[str, ...]
+
+    def training_params(self) -> EnvParams:
+        """The layout to train on: POIs and traps fixed, rover starts drawn anywhere in the
+        map clear of the traps (so the policy learns to reach the POIs from anywhere), and
+        fixed-length episodes as in the paper."""
+        return self.params.replace(fixed_starts=None, start_zone=None, terminate_on_complete=False)
+
+    def counts(self) -> str:
+        p = self.params
+        return f"{p.num_rovers} rovers, {p.num_pois} POIs, {p.num_traps} traps"
+
+
+def _fields(entry: Any, where: str, required: set[str], optional: set[str]) -> dict[str, Any]:
+    require(isinstance(entry, dict), f"{where}: expected a mapping with fields {sorted(required | optional)}, got {entry!r}")
+    for name in sorted(required - entry.keys()):
+        raise UserError(f"{where}: missing field '{name}'")
+    for name in sorted(entry.keys() - required - optional, key=str):
+        raise UserError(f"{where}: unknown field '{name}'; allowed: {', '.join(sorted(required | optional))}")
+    return entry
+
+
+def _point(value: Any, where: str, size: float) -> tuple[float, float]:
+    ok = isinstance(value, (list, tuple)) and len(value) == 2 and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+    require(ok, f"{where}: expected a position [x, y], got {value!r}")
+    x, y = float(value[0]), float(value[1])
+    require(abs(x) <= size and abs(y) <= size, f"{where}: ({x:g}, {y:g}) is outside the map [-{size:g}, {size:g}]^2")
+    return x, y
+
+
+def _positive(value: Any, where: str) -> float:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value) and value > 0
+    require(ok, f"{where}: must be a positive number, got {value!r}")
+    return float(value)
+
+
+def _entries(data: dict, key: str, size: float) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Names, positions [K, 2] and radii [K] of the ``pois`` or ``traps`` list."""
+    entries = data.get(key, [])
+    require(isinstance(entries, list), f"{key}: expected a list, got {entries!r}")
+    names, positions, radii = [], [], []
+    for i, entry in enumerate(entries):
+        label = f"{key}[{i}]" + (f" '{entry['name']}'" if isinstance(entry, dict) and "name" in entry else "")
+        _fields(entry, label, {"position"}, {"name", "radius"})
+        names.append(str(entry.get("name", f"{key[:-1]}-{i}")))
+        positions.append(_point(entry["position"], f"{label} position", size))
+        radii.append(_positive(entry.get("radius", _DEFAULT_RADIUS[key]), f"{label} radius"))
+    return names, np.array(positions, np.float32).reshape(-1, 2), np.array(radii, np.float32)
+
+
+def _rovers(data: dict, size: float) -> tuple[int, np.ndarray | None, np.ndarray | None]:
+    """Rover count, fixed starts [N, 2] (or None) and release zone [2, 2] (or None)."""
+    rovers = _fields(data["rovers"], "rovers", set(), {"start", "count", "release_zone"})
+    require(("start" in rovers) != ("release_zone" in rovers), "rovers: give either 'start' (a list of positions) or 'release_zone' (with 'count')")
+    if "start" in rovers:
+        starts = rovers["start"]
+        require(isinstance(starts, list) and len(starts) > 0, f"rovers.start: expected a non-empty list of positions, got {starts!r}")
+        require("count" not in rovers or rovers["count"] == len(starts), f"rovers.count ({rovers.get('count')}) differs from the {len(starts)} start positions")
+        points = [_point(p, f"rovers.start[{i}]", size) for i, p in enumerate(starts)]
+        return len(points), np.array(points, np.float32), None
+    count = rovers.get("count")
+    require(isinstance(count, int) and not isinstance(count, bool) and count >= 1, f"rovers.count: must be an integer >= 1 with a release_zone, got {count!r}")
+    zone = _fields(rovers["release_zone"], "rovers.release_zone", {"low", "high"}, set())
+    low, high = (_point(zone[k], f"rovers.release_zone.{k}", size) for k in ("low", "high"))
+    require(low[0] < high[0] and low[1] < high[1], f"rovers.release_zone: low {low} must be below and left of high {high}")
+    return count, None, np.array([low, high], np.float32)
+
+
+def _check_clear(starts: np.ndarray, traps: np.ndarray, trap_radii: np.ndarray, rover_radius: float) -> None:
+    for i, start in enumerate(starts):
+        for j, (trap, radius) in enumerate(zip(traps, trap_radii)):
+            gap = float(np.linalg.norm(start - trap)) - radius - rover_radius
+            require(gap >= 0, f"rovers.start[{i}] overlaps traps[{j}]: a rover (radius {rover_radius:g}) there would start in the crater")
+        for k in range(i):
+            gap = float(np.linalg.norm(start - starts[k])) - 2 * rover_radius
+            require(gap >= 0, f"rovers.start[{i}] overlaps rovers.start[{k}]: starts must be at least {2 * rover_radius:g} apart")
+
+
+def parse_mission(data: Any, name: str = "mission") -> Mission:
+    """A :class:`Mission` from the parsed content of a mission file (raises :class:`UserError`)."""
+    _fields(data, "mission file", {"rovers", "pois"}, _TOP_FIELDS - {"rovers", "pois"})
+    size = _positive(data.get("map_size", 1.0), "map_size")
+    steps = data.get("episode_length", 25)
+    require(isinstance(steps, int) and not isinstance(steps, bool) and steps >= 1, f"episode_length: must be an integer >= 1, got {steps!r}")
+    stop = data.get("stop_when_complete", True)
+    require(isinstance(stop, bool), f"stop_when_complete: must be true or false, got {stop!r}")
+    poi_names, pois, observe = _entries(data, "pois", size)
+    require(len(pois) > 0, "pois: a mission needs at least one POI")
+    _, traps, trap_radius = _entries(data, "traps", size)
+    count, starts, zone = _rovers(data, size)
+    defaults = EnvParams()
+    if starts is not None:
+        _check_clear(starts, traps, trap_radius, defaults.rover_radius)
+    params = EnvParams(
+        num_rovers=count,
+        num_pois=len(pois),
+        num_traps=len(traps),
+        max_steps=steps,
+        terminate_on_complete=stop,
+        map_size=size,
+        trap_radius=trap_radius if len(traps) else defaults.trap_radius,
+        observe_radius=observe,
+        fixed_pois=pois,
+        fixed_traps=traps,
+        fixed_starts=starts,
+        start_zone=zone,
+    )
+    return Mission(name=str(data.get("name", name)), params=validate_params(params), poi_names=tuple(poi_names))
+
+
+def load_mission(path: str | Path) -> Mission:
+    """Read and validate the mission file ``path`` (.yaml, .yml or .json)."""
+    path = Path(path)
+    require(path.is_file(), f"mission file '{path}' does not exist")
+    text = path.read_text()
+    try:
+        data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
+    except (json.JSONDecodeError, yaml.YAMLError) as error:
+        raise UserError(f"mission file '{path}' is not valid {'JSON' if path.suffix.lower() == '.json' else 'YAML'}: {error}") from None
+    return parse_mission(data, name=path.stem)

@@ -1,0 +1,274 @@
+"""Running a swarm on a mission: routes, an animation and mission metrics; failure stress tests.
+
+``roverswarm mission run`` and ``roverswarm mission stress`` as functions. A policy is
+``oracle``, ``random``, or a run folder of ``roverswarm train``; a trained policy runs on any
+mission with the numbers of rovers, POIs and traps it was trained for (the positions may
+differ: observations are relative).
+"""
+
+from __future__ import annotations
+
+import csv
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from matplotlib.figure import Figure
+
+from roverswarm.env.mars import NEVER, EnvParams
+from roverswarm.env.missions import Mission, load_mission
+from roverswarm.env.render import FrameRenderer, episode_frames, save_animation
+from roverswarm.errors import require
+from roverswarm.evaluate import MissionStats, Rollout, rollout
+from roverswarm.policies import ORACLE, REFERENCE_POLICIES, Policy, trained_policy
+from roverswarm.train import load_run, validate
+
+_FAILURE = re.compile(r"^(\d+)@(\d+)$")
+
+
+def load_policy(spec: str, mission: Mission, seed: int = 0) -> Policy:
+    """``oracle``, ``random``, or seed ``seed`` of the trained run in folder ``spec``, checked
+    against the mission's numbers of rovers, POIs and traps."""
+    if spec in REFERENCE_POLICIES:
+        return REFERENCE_POLICIES[spec]
+    require(Path(spec).is_dir(), f"--policy: expected 'oracle', 'random' or a run folder of `roverswarm train`, got '{spec}'")
+    config, learner = load_run(Path(spec))
+    trained = validate(config)
+    p = mission.params
+    require(
+        (trained.num_rovers, trained.num_pois, trained.num_traps) == (p.num_rovers, p.num_pois, p.num_traps),
+        f"--policy: '{spec}' was trained for {trained.num_rovers} rovers, {trained.num_pois} POIs, {trained.num_traps} traps "
+        f"({config.env_name()}); mission '{mission.name}' has {mission.counts()}. "
+        "Train on the mission with `roverswarm train --mission FILE`.",
+    )
+    require(0 <= seed < config.seeds, f"--policy-seed must be in [0, {config.seeds}) for '{spec}', got {seed}")
+    actor = jax.tree.map(lambda x: x[seed], learner.actor)
+    return trained_policy(config.learner, actor, f"{config.learner.algo} ({Path(spec).name}, seed {seed})")
+
+
+def parse_failures(failures: list[str], params: EnvParams) -> np.ndarray:
+    """``["ROVER@STEP", ...]`` -> fail_step [N] (NEVER for rovers that keep working)."""
+    fail_step = np.full(params.num_rovers, NEVER, np.int32)
+    for text in failures:
+        match = _FAILURE.match(text.strip())
+        require(match is not None, f"--fail: expected ROVER@STEP such as 1@10, got '{text}'")
+        rover, step = int(match[1]), int(match[2])
+        require(rover < params.num_rovers, f"--fail {text}: rover must be in [0, {params.num_rovers}), got {rover}")
+        require(step < params.max_steps, f"--fail {text}: step must be in [0, {params.max_steps}), got {step}")
+        fail_step[rover] = min(fail_step[rover], step)
+    return fail_step
+
+
+# ----------------------------------------------------------------------------- mission run
+
+
+@dataclass(frozen=True)
+class MissionResult:
+    """What ``mission run`` wrote and measured."""
+
+    stats: MissionStats
+    files: dict[str, Path]
+
+
+def _metrics_rows(stats: MissionStats, mission: Mission) -> list[dict[str, object]]:
+    rows = []
+    for e in range(len(stats.success)):
+        row: dict[str, object] = {
+            "episode": e,
+            "success": bool(stats.success[e]),
+            "pois_observed": int(np.isfinite(stats.first_observed[e]).sum()),
+            "time_to_all": stats.time_to_all[e],
+            "collisions": stats.collisions[e],
+            "trap_contacts": stats.trap_contacts[e],
+        }
+        row.update({f"path_length_rover_{i}": v for i, v in enumerate(stats.path_length[e])})
+        row.update({f"observed_{name}": v for name, v in zip(mission.poi_names, stats.first_observed[e])})
+        rows.append(row)
+    return rows
+
+
+def _fmt(value: object) -> str:
+    if isinstance(value, (bool, np.bool_)):
+        return "yes" if value else "no"
+    if isinstance(value, (float, np.floating)):
+        return "never" if np.isnan(value) else f"{value:g}" if float(value).is_integer() else f"{value:.2f}"
+    return str(value)
+
+
+def write_csv(rows: list[dict[str, object]], path: Path) -> None:
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows({k: ("" if isinstance(v, float) and np.isnan(v) else v) for k, v in row.items()} for row in rows)
+
+
+def markdown_table(header: list[str], rows: list[list[object]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(_fmt(v) for v in row) + " |" for row in rows]
+    return "\n".join(lines) + "\n"
+
+
+def mission_report(stats: MissionStats, mission: Mission, policy: str, fail_step: np.ndarray) -> str:
+    """Markdown: the summary, each POI's first observation and each rover's path (episode 0)."""
+    dt = float(mission.params.dt)
+    failed = [f"rover {i} at step {s}" for i, s in enumerate(fail_step) if s != NEVER]
+    lines = [
+        f"# Mission '{mission.name}': {policy}\n",
+        f"{mission.counts()}; {mission.params.max_steps} steps of {dt:g} time units"
+        + (f"; failures: {', '.join(failed)}" if failed else "") + ".\n",
+        markdown_table(
+            ["success", "POIs observed", "time to observe all (steps)", "collisions", "trap contacts", "total path length"],
+            [[stats.success[0], f"{np.isfinite(stats.first_observed[0]).sum()}/{mission.params.num_pois}", stats.time_to_all[0],
+              stats.collisions[0], stats.trap_contacts[0], stats.path_length[0].sum()]],
+        ),
+        markdown_table(["POI", "first observed (step)"], [[n, t] for n, t in zip(mission.poi_names, stats.first_observed[0])]),
+        markdown_table(["rover", "path length", "failed at step"], [
+            [i, length, "-" if s == NEVER else int(s)] for i, (length, s) in enumerate(zip(stats.path_length[0], fail_step))
+        ]),
+    ]
+    if len(stats.success) > 1:
+        lines.append(
+            f"Over {len(stats.success)} episodes: success {stats.success.mean():.0%}, "
+            f"time to observe all {np.nanmean(stats.time_to_all) if stats.success.any() else float('nan'):.1f} steps "
+            f"(successful episodes), collisions {stats.collisions.mean():.2f}, trap contacts {stats.trap_contacts.mean():.2f}.\n"
+        )
+    return "\n".join(lines)
+
+
+def _routes_png(data: Rollout, mission: Mission, stats: MissionStats, fail_step: np.ndarray, path: Path, title: str) -> None:
+    """The whole route of episode 0 with the POIs named and their observation steps."""
+    renderer = FrameRenderer(mission.params, pixels=640)
+    renderer.frame(data.rover_pos[0], data.poi_pos[0], data.trap_pos[0], data.observed[0, -1], title)
+    ax = renderer.ax
+    for (x, y), name, t in zip(data.poi_pos[0], mission.poi_names, stats.first_observed[0]):
+        ax.annotate(f"{name} ({'never' if np.isnan(t) else f't={t:.0f}'})", (x, y), xytext=(6, 6), textcoords="offset points", fontsize=8)
+    for i, s in enumerate(fail_step):
+        if s != NEVER:
+            x, y = data.rover_pos[0, -1, i]
+            ax.plot([x], [y], marker="x", color="black", markersize=14, mew=3)
+            ax.annotate(f"rover {i} failed (t={s})", (x, y), xytext=(6, -12), textcoords="offset points", fontsize=8)
+    for i in range(mission.params.num_rovers):
+        ax.plot(*data.rover_pos[0, 0, i], marker="s", color="black", markersize=4)
+        ax.annotate(f"start {i}", tuple(data.rover_pos[0, 0, i]), xytext=(4, -10), textcoords="offset points", fontsize=7)
+    renderer.figure.savefig(path)
+
+
+def run_mission(
+    mission_path: str | Path,
+    policy_spec: str,
+    out: str | Path,
+    failures: tuple[str, ...] = (),
+    episodes: int = 1,
+    seed: int = 0,
+    policy_seed: int = 0,
+    animation: str = "gif",
+) -> MissionResult:
+    """Run ``policy_spec`` on the mission; write trajectories.csv, metrics.csv, metrics.md,
+    routes.png and mission.gif (or .mp4) for episode 0 into ``out``."""
+    require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
+    require(animation in ("gif", "mp4"), f"--animation must be gif or mp4, got '{animation}'")
+    mission = load_mission(mission_path)
+    policy = load_policy(policy_spec, mission, policy_seed)
+    fail_step = parse_failures(list(failures), mission.params)
+    data = rollout(policy, jax.random.PRNGKey(seed), mission.params, episodes, fail_step=fail_step)
+    stats = MissionStats.of(data)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    files = {name: out / name for name in ("trajectories.csv", "metrics.csv", "metrics.md", "routes.png", f"mission.{animation}")}
+    trajectory = [
+        {"episode": e, "step": t, "rover": i, "x": float(x), "y": float(y), "working": bool(t < fail_step[i]),
+         "pois_observed": int(data.observed[e, t].sum())}
+        for e in range(episodes) for t in range(data.rover_pos.shape[1]) for i, (x, y) in enumerate(data.rover_pos[e, t])
+    ]
+    write_csv(trajectory, files["trajectories.csv"])
+    write_csv(_metrics_rows(stats, mission), files["metrics.csv"])
+    files["metrics.md"].write_text(mission_report(stats, mission, policy.name, fail_step))
+    title = f"{mission.name}: {policy.name}"
+    _routes_png(data, mission, stats, fail_step, files["routes.png"], title)
+    save_animation(episode_frames(data, mission.params, 0, title).frames, files[f"mission.{animation}"])
+    return MissionResult(stats=stats, files=files)
+
+
+# ----------------------------------------------------------------------------- stress
+
+
+def random_failures(key: jax.Array, episodes: int, params: EnvParams) -> np.ndarray:
+    """[E, N] fail steps: in each episode one rover, uniform, fails at a uniform step in [0, T)."""
+    k_rover, k_step = jax.random.split(key)
+    rover = np.asarray(jax.random.randint(k_rover, (episodes,), 0, params.num_rovers))
+    step = np.asarray(jax.random.randint(k_step, (episodes,), 0, params.max_steps))
+    fail_step = np.full((episodes, params.num_rovers), NEVER, np.int32)
+    fail_step[np.arange(episodes), rover] = step
+    return fail_step
+
+
+def stress_rows(policies: list[Policy], mission: Mission, episodes: int, seed: int) -> tuple[list[dict[str, object]], dict]:
+    """For each policy, ``episodes`` episodes without failure and the same episodes (same starts
+    and keys) with one random rover failing at a random step. Returns the summary rows and, per
+    policy, (fail steps [E], success [E]) of the failure episodes for the plot."""
+    key = jax.random.PRNGKey(seed)
+    fail_step = random_failures(jax.random.fold_in(key, 1), episodes, mission.params)
+    rows, curves = [], {}
+    for policy in policies:
+        for condition, fails in (("no failure", None), ("one rover fails", fail_step)):
+            stats = MissionStats.of(rollout(policy, key, mission.params, episodes, fail_step=fails))
+            rows.append({
+                "policy": policy.name,
+                "condition": condition,
+                "success": float(stats.success.mean()),
+                "time_to_all": float(np.nanmean(stats.time_to_all)) if stats.success.any() else float("nan"),
+                "pois_observed": float(np.isfinite(stats.first_observed).sum(axis=1).mean()),
+                "collisions": float(stats.collisions.mean()),
+                "trap_contacts": float(stats.trap_contacts.mean()),
+            })
+            if fails is not None:
+                curves[policy.name] = (fail_step.min(axis=1), stats.success)
+    return rows, curves
+
+
+def _stress_png(curves: dict, rows: list[dict[str, object]], mission: Mission, path: Path) -> None:
+    """Success rate against the step at which the rover failed, one line per policy, with
+    each policy's success without failure as a dashed line."""
+    figure = Figure(figsize=(7, 5), dpi=100)
+    ax = figure.add_subplot()
+    steps = mission.params.max_steps
+    edges = np.linspace(0, steps, min(steps, 10) + 1)
+    centres = (edges[:-1] + edges[1:]) / 2
+    for (name, (fail, success)), color in zip(curves.items(), ("#1f77b4", "#ff7f0e", "#2ca02c")):
+        which = np.clip(np.digitize(fail, edges) - 1, 0, len(centres) - 1)
+        rate = [success[which == b].mean() if np.any(which == b) else np.nan for b in range(len(centres))]
+        ax.plot(centres, rate, marker="o", color=color, label=f"{name}: one rover fails")
+        baseline = next(r["success"] for r in rows if r["policy"] == name and r["condition"] == "no failure")
+        ax.axhline(baseline, color=color, ls="--", lw=1, label=f"{name}: no failure")
+    ax.set_xlabel("step at which the rover fails")
+    ax.set_ylabel("mission success (all POIs observed)")
+    ax.set_ylim(-0.05, 1.05)
+    ax.set_title(f"Mission '{mission.name}': redundancy under a rover failure")
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.15), ncol=2)
+    figure.tight_layout()
+    figure.savefig(path)
+
+
+def stress_mission(mission_path: str | Path, policy_spec: str, out: str | Path, episodes: int = 500, seed: int = 0, policy_seed: int = 0) -> list[dict[str, object]]:
+    """``mission stress``: the policy beside the oracle, without and with a random rover
+    failure; writes stress.csv, stress.md and stress.png into ``out``. Returns the rows."""
+    require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
+    mission = load_mission(mission_path)
+    policy = load_policy(policy_spec, mission, policy_seed)
+    policies = [policy] if policy.name == ORACLE.name else [policy, ORACLE]
+    rows, curves = stress_rows(policies, mission, episodes, seed)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_csv(rows, out / "stress.csv")
+    header = ["policy", "condition", "success", "time to observe all (steps)", "POIs observed", "collisions", "trap contacts"]
+    body = [[r["policy"], r["condition"], f"{r['success']:.0%}", r["time_to_all"], r["pois_observed"], r["collisions"], r["trap_contacts"]] for r in rows]
+    (out / "stress.md").write_text(
+        f"# Mission '{mission.name}': one rover fails\n\n{episodes} episodes per row, seed {seed}; in the failure rows one "
+        f"rover, drawn uniformly, stops for good at a step drawn uniformly in [0, {mission.params.max_steps}).\n\n"
+        + markdown_table(header, body)
+    )
+    _stress_png(curves, rows, mission, out / "stress.png")
+    return rows

@@ -1,0 +1,256 @@
+"""Missions: file validation, layouts, mission metrics, rover failures, the oracle, the commands."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import imageio.v2 as imageio
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import yaml
+
+from roverswarm.cli import main
+from roverswarm.env.mars import NEVER, EnvParams, reset, step_env
+from roverswarm.env.missions import load_mission, parse_mission
+from roverswarm.errors import UserError
+from roverswarm.evaluate import EpisodeStats, MissionStats, Rollout, rollout
+from roverswarm.mission import load_policy, parse_failures, run_mission, stress_mission
+from roverswarm.policies import ORACLE, RANDOM, OraclePlan, Policy, oracle_goals
+
+EXAMPLES = Path(__file__).parent.parent / "examples"
+
+
+def good() -> dict:
+    return {
+        "name": "test",
+        "rovers": {"start": [[-0.5, -0.8], [0.5, -0.8]]},
+        "pois": [{"name": "a", "position": [-0.5, 0.5]}, {"position": [0.5, 0.5], "radius": 0.2}],
+        "traps": [{"position": [0.0, 0.0], "radius": 0.15}],
+    }
+
+
+def with_change(change) -> dict:
+    data = good()
+    change(data)
+    return data
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda d: d["pois"][0].update(position=[1.5, 0.0]), "pois[0] 'a' position: (1.5, 0) is outside the map"),
+        (lambda d: d["rovers"]["start"].__setitem__(1, [0.1, 0.0]), "rovers.start[1] overlaps traps[0]"),
+        (lambda d: d["rovers"]["start"].__setitem__(1, [-0.4, -0.8]), "rovers.start[1] overlaps rovers.start[0]"),
+        (lambda d: d["traps"][0].update(radius=-0.1), "traps[0] radius: must be a positive number, got -0.1"),
+        (lambda d: d["pois"][1].update(radius=0), "pois[1] radius: must be a positive number, got 0"),
+        (lambda d: d["pois"][1].pop("position"), "pois[1]: missing field 'position'"),
+        (lambda d: d.pop("rovers"), "mission file: missing field 'rovers'"),
+        (lambda d: d["traps"][0].update(depth=3), "traps[0]: unknown field 'depth'"),
+        (lambda d: d.update(map_size=-1), "map_size: must be a positive number"),
+        (lambda d: d.update(episode_length=0), "episode_length: must be an integer >= 1"),
+        (lambda d: d.update(pois=[]), "pois: a mission needs at least one POI"),
+        (lambda d: d["pois"][0].update(position=[0.1]), "pois[0] 'a' position: expected a position [x, y]"),
+        (lambda d: d.update(rovers={"count": 2}), "rovers: give either 'start'"),
+        (lambda d: d.update(rovers={"count": 0, "release_zone": {"low": [0, 0], "high": [1, 1]}}), "rovers.count: must be an integer >= 1"),
+        (lambda d: d.update(rovers={"count": 2, "release_zone": {"low": [0, 0], "high": [0, 1]}}), "must be below and left of high"),
+    ],
+)
+def test_each_kind_of_bad_mission_names_the_offending_entry(change, message):
+    with pytest.raises(UserError) as error:
+        parse_mission(with_change(change))
+    assert message in str(error.value)
+
+
+def test_a_bad_mission_file_exits_2_with_one_line(tmp_path, capsys):
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(with_change(lambda d: d["pois"][1].update(position=[0.2, -3.0]))))
+    assert main(["mission", "run", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "pois[1] position: (0.2, -3) is outside the map" in err
+    path.write_text("pois: [unclosed")
+    assert main(["mission", "run", str(path)]) == 2
+    assert "is not valid YAML" in capsys.readouterr().err
+    assert main(["mission", "run", str(tmp_path / "missing.json")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_json_and_yaml_missions_give_the_same_layout(tmp_path):
+    (tmp_path / "m.json").write_text(__import__("json").dumps(good()))
+    (tmp_path / "m.yaml").write_text(yaml.safe_dump(good()))
+    a, b = load_mission(tmp_path / "m.json"), load_mission(tmp_path / "m.yaml")
+    np.testing.assert_array_equal(a.params.fixed_pois, b.params.fixed_pois)
+    assert a.poi_names == b.poi_names == ("a", "poi-1")
+
+
+# ----------------------------------------------------------------------------- layouts
+
+
+def test_reset_places_the_mission_layout_and_release_zone_starts_stay_in_the_zone():
+    mission = load_mission(EXAMPLES / "mission.yaml")
+    _, state = reset(jax.random.PRNGKey(3), mission.params)
+    np.testing.assert_allclose(state.poi_pos, mission.params.fixed_pois)
+    np.testing.assert_allclose(state.trap_pos, mission.params.fixed_traps)
+    np.testing.assert_allclose(state.rover_pos, mission.params.fixed_starts)
+    survey = load_mission(EXAMPLES / "survey.yaml")
+    states = jax.vmap(reset, in_axes=(0, None))(jax.random.split(jax.random.PRNGKey(0), 200), survey.params)[1]
+    low, high = survey.params.start_zone
+    assert np.all((states.rover_pos >= low) & (states.rover_pos <= high))
+    assert np.unique(np.asarray(states.rover_pos).reshape(-1, 2), axis=0).shape[0] > 500  # drawn, not fixed
+    # training keeps POIs and traps but draws starts anywhere, without termination
+    train = survey.training_params()
+    starts = jax.vmap(reset, in_axes=(0, None))(jax.random.split(jax.random.PRNGKey(0), 200), train)[1].rover_pos
+    assert np.asarray(starts)[..., 1].max() > 0.5 and not train.terminate_on_complete
+
+
+# ----------------------------------------------------------------------------- metrics
+
+
+def scripted_rollout() -> Rollout:
+    """Two episodes, 2 rovers, 2 POIs, 4 steps, with answers worked out by hand."""
+    pos = np.zeros((2, 5, 2, 2))
+    pos[0, :, 0, 0] = [0.0, 0.3, 0.6, 0.6, 0.6]  # rover 0 of episode 0: 0.6 in all
+    pos[0, :, 1, 1] = [0.0, 0.0, 0.4, 0.4, 0.4]  # rover 1: 0.4
+    pos[1, :, 0] = [[0, 0], [0.3, 0.4], [0.3, 0.4], [0.3, 0.4], [0.3, 0.4]]  # 0.5; rover 1 never moves
+    observed = np.zeros((2, 5, 2), bool)
+    observed[0, 2:, 0] = True  # POI 0 at step 2, POI 1 at step 3 -> all at 3
+    observed[0, 3:, 1] = True
+    observed[1, 0:, 1] = True  # episode 1: POI 1 at the start, POI 0 never
+    stats = EpisodeStats(
+        reward=np.zeros(2), agent_rewards=np.zeros((2, 2)), collisions=np.array([1.0, 0.0]),
+        trap_contacts=np.array([0.0, 2.0]), coverage_distance=np.zeros(2), pois_observed=observed[:, -1].sum(-1),
+    )
+    return Rollout(stats, pos, np.zeros((2, 2, 2)), np.zeros((2, 0, 2)), observed, np.zeros((2, 4, 2)))
+
+
+def test_mission_metrics_on_scripted_trajectories():
+    stats = MissionStats.of(scripted_rollout())
+    np.testing.assert_array_equal(stats.first_observed, [[2, 3], [np.nan, 0]])
+    np.testing.assert_array_equal(stats.time_to_all, [3, np.nan])
+    np.testing.assert_array_equal(stats.success, [True, False])
+    np.testing.assert_allclose(stats.path_length, [[0.6, 0.4], [0.5, 0.0]], atol=1e-12)
+    np.testing.assert_array_equal(stats.trap_contacts, [0, 2])
+
+
+def test_mission_complete_terminates_and_the_swarm_stands_still_after():
+    params = EnvParams(num_rovers=1, num_pois=1, num_traps=0, max_steps=10, terminate_on_complete=True,
+                       fixed_pois=np.array([[0.3, 0.0]]), fixed_starts=np.array([[0.0, 0.0]]))
+    data = rollout(Policy("right", lambda *_: jnp.array([[1.0, 0.0]])), jax.random.PRNGKey(0), params, 1)
+    stats = MissionStats.of(data)
+    t = int(stats.time_to_all[0])
+    assert stats.success[0] and 0 < t < 10
+    x = data.rover_pos[0, :, 0, 0]
+    # MPE order: the first step moves by the old (zero) velocity; then it drives until observed and stops
+    assert np.all(np.diff(x[1 : t + 1]) > 0) and np.all(x[t:] == x[t])
+    assert np.all(data.rewards[0, t:] == 0)
+
+
+# ----------------------------------------------------------------------------- failures
+
+
+def test_a_failed_rover_never_moves_again_even_when_pushed():
+    mission = load_mission(EXAMPLES / "mission.yaml")
+    fail = parse_failures(["1@5", "2@0"], mission.params)
+    np.testing.assert_array_equal(fail, [NEVER, 5, 0])
+    data = rollout(RANDOM, jax.random.PRNGKey(0), mission.params.replace(terminate_on_complete=False), 50, fail_step=fail)
+    pos = data.rover_pos  # [E, T + 1, N, 2]
+    assert np.all(pos[:, 5:, 1] == pos[:, 5:6, 1]) and np.all(pos[:, :, 2] == pos[:, :1, 2])
+    # it did move before step 5 (from step 1: the first step moves by the zero start velocity)
+    assert np.all(np.abs(np.diff(pos[:, 1:6, 1], axis=1)).sum(-1) > 0)
+    assert np.all(np.abs(np.diff(pos[:, 1:, 0], axis=1)).sum(-1) > 0)
+    # pushed: rover 0 overlaps the failed rover 1; the contact force moves only rover 0
+    params = EnvParams(num_rovers=2, num_pois=1, num_traps=0)
+    _, state = reset(jax.random.PRNGKey(0), params)
+    state = state.replace(rover_pos=jnp.array([[0.0, 0.0], [0.1, 0.0]]), fail_step=jnp.array([NEVER, 0], jnp.int32))
+    touched = []
+    for _ in range(3):
+        _, state, _, _, _, info = step_env(state, jnp.zeros((2, 2)), params)
+        touched.append(int(info["collisions"][1]))
+    np.testing.assert_array_equal(state.rover_pos[1], np.float32([0.1, 0.0]))
+    assert state.rover_pos[0, 0] < -0.01 and touched[0] == 1  # it still counts in contacts
+
+
+@pytest.mark.parametrize("text, message", [("1-5", "expected ROVER@STEP"), ("3@2", "rover must be in [0, 3)"), ("0@25", "step must be in [0, 25)")])
+def test_bad_failures_are_refused(text, message):
+    with pytest.raises(UserError, match=message.replace("[", r"\[").replace(")", r"\)")):
+        parse_failures([text], load_mission(EXAMPLES / "mission.yaml").params)
+
+
+def test_the_oracle_takes_over_the_poi_of_a_failed_rover():
+    params = EnvParams(num_rovers=3, num_pois=3, num_traps=0)
+    _, state = reset(jax.random.PRNGKey(0), params)
+    pois = jnp.array([[0.0, 0.5], [0.5, 0.5], [-0.9, -0.9]])
+    state = state.replace(poi_pos=pois, rover_pos=jnp.array([[0.0, 0.4], [0.5, 0.45], [-0.5, -0.5]]), time=jnp.int32(4))
+    plan = OraclePlan(poi=jnp.array([0, 1, 2]), home=state.rover_pos)
+    # nobody failed: each rover keeps its POI, observed or not
+    np.testing.assert_allclose(oracle_goals(state.replace(observed=jnp.array([True, True, False])), plan, params), pois)
+    # rover 2 failed before reaching POI 2: rover 1 (POI observed, nearer than rover 0) ... both free rovers head there
+    failed = state.replace(observed=jnp.array([True, True, False]), fail_step=jnp.array([NEVER, NEVER, 2], jnp.int32))
+    np.testing.assert_allclose(oracle_goals(failed, plan, params)[:2], pois[jnp.array([2, 2])])
+    # a rover whose own POI is still unobserved does not leave it
+    busy = failed.replace(observed=jnp.array([False, True, False]))
+    np.testing.assert_allclose(oracle_goals(busy, plan, params)[:2], pois[jnp.array([0, 2])])
+
+
+@pytest.mark.parametrize("name", ["mission.yaml", "survey.yaml"])
+def test_the_oracle_completes_the_example_missions(name):
+    mission = load_mission(EXAMPLES / name)
+    stats = MissionStats.of(rollout(ORACLE, jax.random.PRNGKey(0), mission.params, 20))
+    assert stats.success.all(), stats.first_observed
+    assert np.all(stats.time_to_all < mission.params.max_steps)
+
+
+# ----------------------------------------------------------------------------- commands
+
+
+def test_mission_run_writes_routes_animation_and_metrics(tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["mission", "run", str(EXAMPLES / "mission.yaml"), "--out", str(out), "--fail", "2@3", "--fail", "0@40"]) == 2
+    assert "--fail 0@40: step must be in [0, 25)" in capsys.readouterr().err
+    result = run_mission(EXAMPLES / "mission.yaml", "oracle", out, ("2@3",))
+    rows = list(csv.DictReader(open(out / "trajectories.csv")))
+    assert len(rows) == (25 + 1) * 3
+    still = [(r["x"], r["y"]) for r in rows if r["rover"] == "2" and int(r["step"]) >= 3]
+    assert len(set(still)) == 1 and all(r["working"] == "False" for r in rows if r["rover"] == "2" and int(r["step"]) >= 3)
+    metrics = list(csv.DictReader(open(out / "metrics.csv")))
+    assert metrics[0]["observed_delta-front"] == str(result.stats.first_observed[0, 0]).replace("nan", "")
+    assert float(metrics[0]["path_length_rover_2"]) == pytest.approx(result.stats.path_length[0, 2])
+    assert "rover 2 at step 3" in (out / "metrics.md").read_text()
+    frames = imageio.mimread(out / "mission.gif")
+    assert len(frames) == 26 and imageio.imread(out / "routes.png").std() > 10
+
+
+def test_mission_stress_reports_both_conditions_for_policy_and_oracle(tmp_path):
+    rows = stress_mission(EXAMPLES / "survey.yaml", "random", tmp_path, episodes=40)
+    assert [(r["policy"], r["condition"]) for r in rows] == [
+        ("random", "no failure"), ("random", "one rover fails"), ("oracle", "no failure"), ("oracle", "one rover fails")
+    ]
+    oracle = {r["condition"]: r for r in rows if r["policy"] == "oracle"}
+    assert oracle["no failure"]["success"] == 1.0
+    assert oracle["one rover fails"]["pois_observed"] <= oracle["no failure"]["pois_observed"]
+    random = {r["condition"]: r for r in rows if r["policy"] == "random"}
+    assert random["no failure"]["success"] < 0.5 < oracle["one rover fails"]["success"]
+    assert list(csv.DictReader(open(tmp_path / "stress.csv")))[3]["policy"] == "oracle"
+    assert imageio.imread(tmp_path / "stress.png").std() > 10
+
+
+def test_train_on_a_mission_then_run_the_policy_and_refuse_a_mismatch(tiny_config, tmp_path):
+    import dataclasses
+
+    from roverswarm.train import train
+
+    config = dataclasses.replace(tiny_config, mission=str(EXAMPLES / "mission.yaml"), episodes=200, seeds=1)
+    train(config, out=tmp_path / "run")
+    mission = load_mission(EXAMPLES / "mission.yaml")
+    policy = load_policy(str(tmp_path / "run"), mission)
+    data = rollout(policy, jax.random.PRNGKey(0), mission.params, 1)
+    np.testing.assert_allclose(data.poi_pos[0], mission.params.fixed_pois)
+    with pytest.raises(UserError, match=r"trained for 3 rovers, 3 POIs, 3 traps \(mission mission\); mission 'crater-survey' has 3 rovers, 6 POIs, 2 traps"):
+        load_policy(str(tmp_path / "run"), load_mission(EXAMPLES / "survey.yaml"))
+    with pytest.raises(UserError, match=r"--policy-seed must be in \[0, 1\)"):
+        load_policy(str(tmp_path / "run"), mission, seed=1)
