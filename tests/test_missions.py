@@ -254,3 +254,18 @@ def test_train_on_a_mission_then_run_the_policy_and_refuse_a_mismatch(tiny_confi
         load_policy(str(tmp_path / "run"), load_mission(EXAMPLES / "survey.yaml"))
     with pytest.raises(UserError, match=r"--policy-seed must be in \[0, 1\)"):
         load_policy(str(tmp_path / "run"), mission, seed=1)
+
+
+def test_pettingzoo_runs_a_mission_and_ends_it_once_every_poi_is_observed():
+    from roverswarm.env.pettingzoo import RoverSwarmEnv
+
+    data = {"rovers": {"start": [[0.0, 0.0], [0.5, 0.5]]}, "pois": [{"position": [0.05, 0.0]}], "episode_length": 25}
+    env = RoverSwarmEnv(params=parse_mission(data).params)
+    obs, _ = env.reset(seed=0)
+    np.testing.assert_allclose(obs["rover_0"][4:6], [0.05, 0.0], atol=1e-6)  # the POI, relative to rover 0
+    _, _, terms, truncs, _ = env.step({a: np.zeros(2, np.float32) for a in env.agents})
+    assert all(terms.values()) and not any(truncs.values()) and env.agents == []
+    stay = parse_mission({**data, "stop_when_complete": False})
+    env = RoverSwarmEnv(params=stay.params)
+    env.reset(seed=0)
+    assert not any(env.step({a: np.zeros(2, np.float32) for a in env.agents})[2].values())
