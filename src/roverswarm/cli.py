@@ -74,7 +74,7 @@ class MissionRunCommand:
     policy: str = "oracle"
     """`oracle`, `random`, or a run folder of `roverswarm train` (same numbers of rovers, POIs, traps)."""
     out: Path = Path("mission-out")
-    """Output folder: trajectories.csv, metrics.csv, metrics.md, routes.png, mission.gif."""
+    """Output folder: trajectories.csv, metrics.csv, metrics.md, routes.png, mission.gif and its last frame mission.png."""
     fail: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
     """ROVER@STEP: freeze that rover from that step on."""
     episodes: int = 1
@@ -142,6 +142,8 @@ def _flat_fields(config) -> dict[str, object]:
 def run_train(cmd: TrainCommand) -> None:
     if cmd.resume is None:
         config = cmd.config
+        if config.mission is not None:  # stored absolute, so resume and evaluate work from any folder
+            config = dataclasses.replace(config, mission=str(Path(config.mission).resolve()))
         require(cmd.out is not None or config.episodes <= 10_000, "give --out for runs of more than 10000 episodes, so that they can be resumed")
         result = train(config, out=cmd.out)
     else:

@@ -75,7 +75,6 @@ def _run_episode(act: ActFn, key: jax.Array, obs: jax.Array, state: EnvState, pl
             "rewards": rewards * live,
             "collisions": jnp.sum(info["collisions"]) * live / 2,
             "trap_contacts": jnp.sum(info["trap_contacts"]) * live,
-            "coverage_distance": info["coverage_distance"],
             "rover_pos": state.rover_pos,
             "observed": state.observed,
         }
@@ -119,7 +118,8 @@ def rollout(policy: Policy, key: jax.Array, params: EnvParams, num_episodes: int
         agent_rewards=rewards.sum(axis=1),
         collisions=out["collisions"].sum(axis=1),
         trap_contacts=out["trap_contacts"].sum(axis=1),
-        coverage_distance=out["coverage_distance"][:, -1],
+        # from the final positions: after a termination the last step's info is of a discarded step
+        coverage_distance=np.linalg.norm(out["rover_pos"][:, -1, :, None] - np.asarray(states.poi_pos)[:, None], axis=-1).min(axis=1).sum(axis=-1),
         pois_observed=observed[:, -1].sum(axis=-1),
     )
     return Rollout(
@@ -152,7 +152,7 @@ class MissionStats:
         observed = data.observed  # [E, T + 1, P]
         first = np.where(observed.any(axis=1), observed.argmax(axis=1), np.nan)
         success = observed[:, -1].all(axis=-1)
-        latest = first.max(axis=1, initial=0.0)
+        latest = first.max(axis=1)
         return cls(
             first_observed=first,
             time_to_all=np.where(success, latest, np.nan),

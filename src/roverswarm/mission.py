@@ -8,7 +8,6 @@ differ: observations are relative).
 
 from __future__ import annotations
 
-import csv
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,7 +23,7 @@ from roverswarm.env.render import FrameRenderer, episode_frames, save_animation
 from roverswarm.errors import require
 from roverswarm.evaluate import MissionStats, Rollout, rollout
 from roverswarm.policies import ORACLE, REFERENCE_POLICIES, Policy, trained_policy
-from roverswarm.train import load_run, validate
+from roverswarm.train import load_run, validate, write_csv
 
 _FAILURE = re.compile(r"^(\d+)@(\d+)$")
 
@@ -98,11 +97,9 @@ def _fmt(value: object) -> str:
     return str(value)
 
 
-def write_csv(rows: list[dict[str, object]], path: Path) -> None:
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows({k: ("" if isinstance(v, float) and np.isnan(v) else v) for k, v in row.items()} for row in rows)
+def _write_rows(rows: list[dict[str, object]], path: Path) -> None:
+    """CSV with NaN (never observed, never completed) as an empty cell."""
+    write_csv(path, [{k: ("" if isinstance(v, float) and np.isnan(v) else v) for k, v in row.items()} for row in rows])
 
 
 def markdown_table(header: list[str], rows: list[list[object]]) -> str:
@@ -130,10 +127,10 @@ def mission_report(stats: MissionStats, mission: Mission, policy: str, fail_step
         ]),
     ]
     if len(stats.success) > 1:
+        timing = f"time to observe all {np.nanmean(stats.time_to_all):.1f} steps (successful episodes)" if stats.success.any() else "none succeeded"
         lines.append(
-            f"Over {len(stats.success)} episodes: success {stats.success.mean():.0%}, "
-            f"time to observe all {np.nanmean(stats.time_to_all) if stats.success.any() else float('nan'):.1f} steps "
-            f"(successful episodes), collisions {stats.collisions.mean():.2f}, trap contacts {stats.trap_contacts.mean():.2f}.\n"
+            f"Over {len(stats.success)} episodes: success {stats.success.mean():.0%}, {timing}, "
+            f"collisions {stats.collisions.mean():.2f}, trap contacts {stats.trap_contacts.mean():.2f}.\n"
         )
     return "\n".join(lines)
 
@@ -166,8 +163,9 @@ def run_mission(
     policy_seed: int = 0,
     animation: str = "gif",
 ) -> MissionResult:
-    """Run ``policy_spec`` on the mission; write trajectories.csv, metrics.csv, metrics.md,
-    routes.png and mission.gif (or .mp4) for episode 0 into ``out``."""
+    """Run ``policy_spec`` on the mission; write trajectories.csv and metrics.csv (every
+    episode), metrics.md, routes.png and mission.gif (or .mp4, with its last frame as
+    mission.png) of episode 0 into ``out``."""
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
     require(animation in ("gif", "mp4"), f"--animation must be gif or mp4, got '{animation}'")
     mission = load_mission(mission_path)
@@ -177,14 +175,14 @@ def run_mission(
     stats = MissionStats.of(data)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    files = {name: out / name for name in ("trajectories.csv", "metrics.csv", "metrics.md", "routes.png", f"mission.{animation}")}
+    files = {name: out / name for name in ("trajectories.csv", "metrics.csv", "metrics.md", "routes.png", f"mission.{animation}", "mission.png")}
     trajectory = [
         {"episode": e, "step": t, "rover": i, "x": float(x), "y": float(y), "working": bool(t < fail_step[i]),
          "pois_observed": int(data.observed[e, t].sum())}
         for e in range(episodes) for t in range(data.rover_pos.shape[1]) for i, (x, y) in enumerate(data.rover_pos[e, t])
     ]
-    write_csv(trajectory, files["trajectories.csv"])
-    write_csv(_metrics_rows(stats, mission), files["metrics.csv"])
+    _write_rows(trajectory, files["trajectories.csv"])
+    _write_rows(_metrics_rows(stats, mission), files["metrics.csv"])
     files["metrics.md"].write_text(mission_report(stats, mission, policy.name, fail_step))
     title = f"{mission.name}: {policy.name}"
     _routes_png(data, mission, stats, fail_step, files["routes.png"], title)
@@ -195,26 +193,32 @@ def run_mission(
 # ----------------------------------------------------------------------------- stress
 
 
-def random_failures(key: jax.Array, episodes: int, params: EnvParams) -> np.ndarray:
-    """[E, N] fail steps: in each episode one rover, uniform, fails at a uniform step in [0, T)."""
-    k_rover, k_step = jax.random.split(key)
-    rover = np.asarray(jax.random.randint(k_rover, (episodes,), 0, params.num_rovers))
-    step = np.asarray(jax.random.randint(k_step, (episodes,), 0, params.max_steps))
-    fail_step = np.full((episodes, params.num_rovers), NEVER, np.int32)
-    fail_step[np.arange(episodes), rover] = step
+def random_failures(key: jax.Array, finish: np.ndarray, num_rovers: int) -> np.ndarray:
+    """[E, N] fail steps: in episode e one rover, uniform, fails at a uniform step in
+    [0, finish[e]), before the mission would be complete (a later failure changes nothing)."""
+    k_rover, k_when = jax.random.split(key)
+    episodes = len(finish)
+    rover = np.asarray(jax.random.randint(k_rover, (episodes,), 0, num_rovers))
+    when = np.asarray(jax.random.uniform(k_when, (episodes,)))
+    fail_step = np.full((episodes, num_rovers), NEVER, np.int32)
+    fail_step[np.arange(episodes), rover] = np.floor(when * finish).astype(np.int32)
     return fail_step
 
 
 def stress_rows(policies: list[Policy], mission: Mission, episodes: int, seed: int) -> tuple[list[dict[str, object]], dict]:
-    """For each policy, ``episodes`` episodes without failure and the same episodes (same starts
-    and keys) with one random rover failing at a random step. Returns the summary rows and, per
-    policy, (fail steps [E], success [E]) of the failure episodes for the plot."""
+    """For each policy, ``episodes`` episodes without failure, then the same episodes (same
+    starts and keys) with one random rover failing at a random step before that policy's
+    episode was complete (or before its end, if it never was). Rover and relative time are
+    drawn once, shared by all policies. Returns the summary rows and, per policy, (failure
+    time as a fraction of the time to complete [E], success [E]) for the plot."""
     key = jax.random.PRNGKey(seed)
-    fail_step = random_failures(jax.random.fold_in(key, 1), episodes, mission.params)
     rows, curves = [], {}
     for policy in policies:
-        for condition, fails in (("no failure", None), ("one rover fails", fail_step)):
-            stats = MissionStats.of(rollout(policy, key, mission.params, episodes, fail_step=fails))
+        clean = MissionStats.of(rollout(policy, key, mission.params, episodes))
+        finish = np.where(clean.success, clean.time_to_all, mission.params.max_steps)
+        fail_step = random_failures(jax.random.fold_in(key, 1), finish, mission.params.num_rovers)
+        failed = MissionStats.of(rollout(policy, key, mission.params, episodes, fail_step=fail_step))
+        for condition, stats in (("no failure", clean), ("one rover fails", failed)):
             rows.append({
                 "policy": policy.name,
                 "condition": condition,
@@ -224,26 +228,24 @@ def stress_rows(policies: list[Policy], mission: Mission, episodes: int, seed: i
                 "collisions": float(stats.collisions.mean()),
                 "trap_contacts": float(stats.trap_contacts.mean()),
             })
-            if fails is not None:
-                curves[policy.name] = (fail_step.min(axis=1), stats.success)
+        curves[policy.name] = (fail_step.min(axis=1) / np.maximum(finish, 1), failed.success)
     return rows, curves
 
 
 def _stress_png(curves: dict, rows: list[dict[str, object]], mission: Mission, path: Path) -> None:
-    """Success rate against the step at which the rover failed, one line per policy, with
-    each policy's success without failure as a dashed line."""
+    """Success rate against when the rover failed (as a fraction of the time the policy needs
+    without failure), one line per policy, with its success without failure dashed."""
     figure = Figure(figsize=(7, 5), dpi=100)
     ax = figure.add_subplot()
-    steps = mission.params.max_steps
-    edges = np.linspace(0, steps, min(steps, 10) + 1)
+    edges = np.linspace(0.0, 1.0, 11)
     centres = (edges[:-1] + edges[1:]) / 2
-    for (name, (fail, success)), color in zip(curves.items(), ("#1f77b4", "#ff7f0e", "#2ca02c")):
-        which = np.clip(np.digitize(fail, edges) - 1, 0, len(centres) - 1)
+    for (name, (when, success)), color in zip(curves.items(), ("#1f77b4", "#ff7f0e", "#2ca02c")):
+        which = np.clip(np.digitize(when, edges) - 1, 0, len(centres) - 1)
         rate = [success[which == b].mean() if np.any(which == b) else np.nan for b in range(len(centres))]
         ax.plot(centres, rate, marker="o", color=color, label=f"{name}: one rover fails")
         baseline = next(r["success"] for r in rows if r["policy"] == name and r["condition"] == "no failure")
         ax.axhline(baseline, color=color, ls="--", lw=1, label=f"{name}: no failure")
-    ax.set_xlabel("step at which the rover fails")
+    ax.set_xlabel("when the rover fails, as a fraction of the time the swarm needs without failure")
     ax.set_ylabel("mission success (all POIs observed)")
     ax.set_ylim(-0.05, 1.05)
     ax.set_title(f"Mission '{mission.name}': redundancy under a rover failure")
@@ -262,12 +264,14 @@ def stress_mission(mission_path: str | Path, policy_spec: str, out: str | Path, 
     rows, curves = stress_rows(policies, mission, episodes, seed)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    write_csv(rows, out / "stress.csv")
+    _write_rows(rows, out / "stress.csv")
     header = ["policy", "condition", "success", "time to observe all (steps)", "POIs observed", "collisions", "trap contacts"]
     body = [[r["policy"], r["condition"], f"{r['success']:.0%}", r["time_to_all"], r["pois_observed"], r["collisions"], r["trap_contacts"]] for r in rows]
     (out / "stress.md").write_text(
-        f"# Mission '{mission.name}': one rover fails\n\n{episodes} episodes per row, seed {seed}; in the failure rows one "
-        f"rover, drawn uniformly, stops for good at a step drawn uniformly in [0, {mission.params.max_steps}).\n\n"
+        f"# Mission '{mission.name}': one rover fails\n\n{episodes} episodes per row, seed {seed}. In the failure rows "
+        "one rover, drawn uniformly, stops for good at a step drawn uniformly before the policy's own time to observe "
+        "all POIs in that episode without failure (before the episode's end if it never does): a later failure would "
+        "change nothing. Time to observe all is the mean over successful episodes.\n\n"
         + markdown_table(header, body)
     )
     _stress_png(curves, rows, mission, out / "stress.png")

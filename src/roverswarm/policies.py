@@ -12,8 +12,8 @@ A :class:`Policy` has two parts:
 The oracle assigns rovers to POIs by the Hungarian method (minimum total distance, SciPy's
 ``linear_sum_assignment``) and then drives each rover to its POI with a go-to-goal
 controller on the known dynamics that heads along the tangent of any trap or other rover
-in its way. A rover whose POI is observed takes over any POI left open, by a failed rover or
-because there are more POIs than rovers (:func:`oracle_goals`). It is a strong yardstick, not a perfect one: in crowded layouts rovers still
+in its way. Rovers whose POI is observed take over the POIs left open, by a failed rover or
+because there are more POIs than rovers, one rover per POI (:func:`oracle_goals`). It is a strong yardstick, not a perfect one: in crowded layouts rovers still
 brush each other or a crater now and then (about 0.3 trap contacts per episode on
 ``paper-3`` and 1.7 on ``paper-5``, against 5 and 13 for the random policy).
 """
@@ -103,22 +103,30 @@ def oracle_goals(state: EnvState, plan: OraclePlan, params: EnvParams) -> jax.Ar
     """[N, 2] where each rover heads now.
 
     A rover heads for its assigned POI. Once that POI is observed (or if it has none) it is
-    free: it heads for the nearest *open* POI, one not yet observed that no working rover is
-    assigned to (because that rover failed, or because there are more POIs than rovers), and
-    otherwise stays at its assigned POI (or its start). With every rover working and at
+    free. Free rovers take the *open* POIs: not yet observed, and assigned to no working rover
+    (because that rover failed, or because there are more POIs than rovers). They are matched
+    greedily, the closest free rover and open POI first, one rover per POI. A free rover left
+    without one stays at its assigned POI (or its start). With every rover working and at
     least as many rovers as POIs nothing is ever open, so this is the plain assignment.
     """
+    n, p = params.num_rovers, params.num_pois
     working = state.time < state.fail_step  # [N]
     has_poi = plan.poi >= 0
     index = jnp.maximum(plan.poi, 0)
     assigned = jnp.where(has_poi[:, None], state.poi_pos[index], plan.home)
-    claimed = jnp.zeros(params.num_pois, bool).at[index].max(has_poi & working & ~state.observed[index])
+    claimed = jnp.zeros(p, bool).at[index].max(has_poi & working & ~state.observed[index])
     open_poi = ~state.observed & ~claimed  # [P]
-    free = ~has_poi | state.observed[index]
+    free = working & (~has_poi | state.observed[index])  # [N]
     dist = jnp.linalg.norm(state.rover_pos[:, None, :] - state.poi_pos[None, :, :], axis=-1)  # [N, P]
-    nearest = jnp.argmin(jnp.where(open_poi[None, :], dist, jnp.inf), axis=1)
-    retarget = free & jnp.any(open_poi)
-    return jnp.where(retarget[:, None], state.poi_pos[nearest], assigned)
+    cost = jnp.where(free[:, None] & open_poi[None, :], dist, jnp.inf)
+    target = jnp.full(n, -1)
+    for _ in range(min(n, p)):  # greedy matching: the closest remaining (free rover, open POI) pair
+        rover, poi = jnp.divmod(jnp.argmin(cost), p)
+        found = jnp.isfinite(cost[rover, poi])
+        target = jnp.where(found & (jnp.arange(n) == rover), poi, target)
+        taken = found & ((jnp.arange(n) == rover)[:, None] | (jnp.arange(p) == poi)[None, :])
+        cost = jnp.where(taken, jnp.inf, cost)
+    return jnp.where((target >= 0)[:, None], state.poi_pos[jnp.maximum(target, 0)], assigned)
 
 
 def _steer_around(pos: jax.Array, vel_des: jax.Array, goal: jax.Array, obstacles: jax.Array, keep_out: jax.Array) -> jax.Array:

@@ -55,8 +55,9 @@ class TrainConfig:
     scenario: str = "paper-3"
     """Scenario preset (see `roverswarm scenarios`)."""
     mission: str | None = None
-    """Mission file (YAML/JSON) to train on instead of --scenario: its POIs and traps fixed,
-    rover starts drawn anywhere in the map, fixed-length episodes."""
+    """Mission file (YAML/JSON) to train on instead of --scenario (which is then ignored): its
+    POIs and traps fixed, rover starts drawn anywhere in the map, fixed-length episodes. The
+    command line stores its absolute path; the file is read again on resume and evaluation."""
     learner: AlgoConfig = field(default_factory=AlgoConfig)
     episodes: int = 60_000
     """Training episodes per seed (a multiple of --log-every)."""
@@ -442,7 +443,8 @@ def metric_rows(config: TrainConfig, metrics: dict[str, np.ndarray], episodes: i
     return rows
 
 
-def _write_metrics(path: Path, rows: list[dict[str, float]]) -> None:
+def write_csv(path: Path, rows: list[dict]) -> None:
+    """``rows`` (dicts with the same keys) as a CSV file, written atomically (temp file + rename)."""
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
@@ -579,7 +581,7 @@ def train(
                 last = chunk + 1 == chunks
                 if out is not None and (last or stop.raised or (chunk + 1 - first) % config.checkpoint_every == 0):
                     # metrics first: a crash between the two leaves rows that resume trims
-                    _write_metrics(out / METRICS, rows)
+                    write_csv(out / METRICS, rows)
                     save_checkpoint(out / CHECKPOINT, runner, replay=not last)
                 if stop.raised and not last:
                     if out is not None:

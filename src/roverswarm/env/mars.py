@@ -158,8 +158,9 @@ def reset(key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
     Positions are uniform in the map (rovers: in ``start_zone`` if set) unless the params fix
     them (``fixed_pois``, ``fixed_traps``, ``fixed_starts``: a mission's layout). A drawn trap
     keeps ``trap_radius + rover_radius`` away from every POI (so a rover sitting on a POI
-    touches no trap) and a drawn rover starts outside every trap; each uses the first of 16
-    uniform candidates that satisfies this. No rover has failed (``fail_step`` is NEVER).
+    touches no trap) and a drawn rover starts outside every trap (in a ``start_zone``, also
+    clear of the rovers placed before it); each uses the first of 16 uniform candidates that
+    satisfies this. No rover has failed (``fail_step`` is NEVER).
 
     Returns ``(obs [N, O], state)``.
     """
@@ -175,10 +176,16 @@ def reset(key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
         trap_cand = jax.random.uniform(k_trap, (t, _LAYOUT_CANDIDATES, 2), minval=-size, maxval=size)
         trap_pos = _first_clear(trap_cand, poi_pos, (trap_radius + params.rover_radius)[:, None, None])
     rover_pos = params.fixed_starts
-    if rover_pos is None:
-        low, high = (-size, size) if params.start_zone is None else (params.start_zone[0], params.start_zone[1])
-        rover_cand = jax.random.uniform(k_rover, (n, _LAYOUT_CANDIDATES, 2), minval=low, maxval=high)
+    if rover_pos is None and params.start_zone is None:
+        rover_cand = jax.random.uniform(k_rover, (n, _LAYOUT_CANDIDATES, 2), minval=-size, maxval=size)
         rover_pos = _first_clear(rover_cand, trap_pos, trap_radius + params.rover_radius)
+    elif rover_pos is None:  # a release zone is crowded: each rover also keeps clear of those placed before it
+        rover_cand = jax.random.uniform(k_rover, (n, _LAYOUT_CANDIDATES, 2), minval=params.start_zone[0], maxval=params.start_zone[1])
+        rover_pos = jnp.zeros((0, 2))
+        for i in range(n):
+            clearance = jnp.concatenate([trap_radius + params.rover_radius, jnp.full((i,), 2 * params.rover_radius)])
+            placed = _first_clear(rover_cand[i : i + 1], jnp.concatenate([trap_pos, rover_pos]), clearance)
+            rover_pos = jnp.concatenate([rover_pos, placed])
     state = EnvState(
         rover_pos=jnp.asarray(rover_pos, jnp.float32),
         rover_vel=jnp.zeros((n, 2)),

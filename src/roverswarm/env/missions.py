@@ -67,17 +67,33 @@ def _fields(entry: Any, where: str, required: set[str], optional: set[str]) -> d
 
 
 def _point(value: Any, where: str, size: float) -> tuple[float, float]:
-    ok = isinstance(value, (list, tuple)) and len(value) == 2 and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
-    require(ok, f"{where}: expected a position [x, y], got {value!r}")
+    ok = isinstance(value, (list, tuple)) and len(value) == 2 and all(_number(v) is not None for v in value)
+    require(ok, f"{where}: expected a position [x, y] of two numbers, got {value!r}")
     x, y = float(value[0]), float(value[1])
     require(abs(x) <= size and abs(y) <= size, f"{where}: ({x:g}, {y:g}) is outside the map [-{size:g}, {size:g}]^2")
     return x, y
 
 
+def _number(value: Any) -> float | None:
+    """``value`` as a finite float, or None if it is not a finite number."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    try:
+        number = float(value)
+    except OverflowError:
+        return None
+    return number if np.isfinite(number) else None
+
+
 def _positive(value: Any, where: str) -> float:
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value) and value > 0
-    require(ok, f"{where}: must be a positive number, got {value!r}")
-    return float(value)
+    number = _number(value)
+    require(number is not None and number > 0, f"{where}: must be a positive number, got {value!r}")
+    return number
+
+
+def _name(value: Any, where: str) -> str:
+    require(isinstance(value, str) and value.strip() != "", f"{where}: must be a non-empty string, got {value!r}")
+    return value
 
 
 def _entries(data: dict, key: str, size: float) -> tuple[list[str], np.ndarray, np.ndarray]:
@@ -86,9 +102,12 @@ def _entries(data: dict, key: str, size: float) -> tuple[list[str], np.ndarray, 
     require(isinstance(entries, list), f"{key}: expected a list, got {entries!r}")
     names, positions, radii = [], [], []
     for i, entry in enumerate(entries):
-        label = f"{key}[{i}]" + (f" '{entry['name']}'" if isinstance(entry, dict) and "name" in entry else "")
+        label = f"{key}[{i}]"
         _fields(entry, label, {"position"}, {"name", "radius"})
-        names.append(str(entry.get("name", f"{key[:-1]}-{i}")))
+        name = _name(entry["name"], f"{label} name") if "name" in entry else f"{key[:-1]}-{i}"
+        require(name not in names, f"{label}: the name '{name}' is already used by {key}[{names.index(name) if name in names else 0}]")
+        label += f" '{name}'" if "name" in entry else ""
+        names.append(name)
         positions.append(_point(entry["position"], f"{label} position", size))
         radii.append(_positive(entry.get("radius", _DEFAULT_RADIUS[key]), f"{label} radius"))
     return names, np.array(positions, np.float32).reshape(-1, 2), np.array(radii, np.float32)
@@ -101,7 +120,8 @@ def _rovers(data: dict, size: float) -> tuple[int, np.ndarray | None, np.ndarray
     if "start" in rovers:
         starts = rovers["start"]
         require(isinstance(starts, list) and len(starts) > 0, f"rovers.start: expected a non-empty list of positions, got {starts!r}")
-        require("count" not in rovers or rovers["count"] == len(starts), f"rovers.count ({rovers.get('count')}) differs from the {len(starts)} start positions")
+        count = rovers.get("count", len(starts))
+        require(type(count) is int and count == len(starts), f"rovers.count ({count!r}) differs from the {len(starts)} start positions")
         points = [_point(p, f"rovers.start[{i}]", size) for i, p in enumerate(starts)]
         return len(points), np.array(points, np.float32), None
     count = rovers.get("count")
@@ -109,6 +129,12 @@ def _rovers(data: dict, size: float) -> tuple[int, np.ndarray | None, np.ndarray
     zone = _fields(rovers["release_zone"], "rovers.release_zone", {"low", "high"}, set())
     low, high = (_point(zone[k], f"rovers.release_zone.{k}", size) for k in ("low", "high"))
     require(low[0] < high[0] and low[1] < high[1], f"rovers.release_zone: low {low} must be below and left of high {high}")
+    side = 2 * EnvParams().rover_radius
+    require(
+        (high[0] - low[0]) * (high[1] - low[1]) >= 2 * count * side**2,
+        f"rovers.release_zone: {count} rovers of radius {side / 2:g} need an area of at least {2 * count * side**2:g} "
+        f"to start apart, got {(high[0] - low[0]) * (high[1] - low[1]):g}",
+    )
     return count, None, np.array([low, high], np.float32)
 
 
@@ -151,16 +177,19 @@ def parse_mission(data: Any, name: str = "mission") -> Mission:
         fixed_starts=starts,
         start_zone=zone,
     )
-    return Mission(name=str(data.get("name", name)), params=validate_params(params), poi_names=tuple(poi_names))
+    name = _name(data["name"], "name") if "name" in data else name
+    return Mission(name=name, params=validate_params(params), poi_names=tuple(poi_names))
 
 
 def load_mission(path: str | Path) -> Mission:
     """Read and validate the mission file ``path`` (.yaml, .yml or .json)."""
     path = Path(path)
-    require(path.is_file(), f"mission file '{path}' does not exist")
-    text = path.read_text()
+    require(path.exists(), f"mission file '{path}' does not exist")
+    require(path.is_file(), f"mission file '{path}' is not a file")
+    kind = "JSON" if path.suffix.lower() == ".json" else "YAML"
     try:
-        data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
-    except (json.JSONDecodeError, yaml.YAMLError) as error:
-        raise UserError(f"mission file '{path}' is not valid {'JSON' if path.suffix.lower() == '.json' else 'YAML'}: {error}") from None
+        text = path.read_text(encoding="utf-8")
+        data = json.loads(text) if kind == "JSON" else yaml.safe_load(text)
+    except (UnicodeDecodeError, json.JSONDecodeError, yaml.YAMLError) as error:
+        raise UserError(f"mission file '{path}' is not valid UTF-8 {kind}: {error}") from None
     return parse_mission(data, name=path.stem)
