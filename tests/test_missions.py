@@ -151,6 +151,7 @@ def test_mission_metrics_on_scripted_trajectories():
     np.testing.assert_array_equal(stats.first_observed, [[2, 3], [np.nan, 0]])
     np.testing.assert_array_equal(stats.time_to_all, [3, np.nan])
     np.testing.assert_array_equal(stats.success, [True, False])
+    np.testing.assert_array_equal(stats.pois_observed, [2, 1])
     np.testing.assert_allclose(stats.path_length, [[0.6, 0.4], [0.5, 0.0]], atol=1e-12)
     np.testing.assert_array_equal(stats.trap_contacts, [0, 2])
 

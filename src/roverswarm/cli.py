@@ -117,16 +117,16 @@ class MissionCommand:
 
 
 def run_mission(cmd: MissionCommand) -> None:
-    from roverswarm.mission import markdown_table, run_mission, stress_mission
+    from roverswarm import mission
 
     action, console = cmd.action, Console()
     if isinstance(action, MissionRunCommand):
-        result = run_mission(action.mission, action.policy, action.out, action.fail, action.episodes, action.seed, action.policy_seed, action.animation)
+        result = mission.run_mission(action.mission, action.policy, action.out, action.fail, action.episodes, action.seed, action.policy_seed, action.animation)
         console.print(result.files["metrics.md"].read_text(), markup=False)
         console.print(f"wrote {', '.join(str(p) for p in result.files.values())}")
     else:
-        rows = stress_mission(action.mission, action.policy, action.out, action.episodes, action.seed, action.policy_seed)
-        console.print(markdown_table(list(rows[0]), [list(r.values()) for r in rows]), markup=False)
+        rows = mission.stress_mission(action.mission, action.policy, action.out, action.episodes, action.seed, action.policy_seed)
+        console.print(mission.markdown_table(list(rows[0]), [list(r.values()) for r in rows]), markup=False)
         console.print(f"wrote {action.out / 'stress.md'}, stress.csv and stress.png")
 
 

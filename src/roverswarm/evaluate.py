@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from roverswarm.env.mars import EnvParams, EnvState, reset, step_env
+from roverswarm.env.mars import EnvParams, EnvState, coverage_distance, reset, step_env
 from roverswarm.errors import require
 from roverswarm.policies import ORACLE, RANDOM, ActFn, Plan, Policy, trained_policy
 from roverswarm.train import load_run, validate
@@ -119,7 +119,7 @@ def rollout(policy: Policy, key: jax.Array, params: EnvParams, num_episodes: int
         collisions=out["collisions"].sum(axis=1),
         trap_contacts=out["trap_contacts"].sum(axis=1),
         # from the final positions: after a termination the last step's info is of a discarded step
-        coverage_distance=np.linalg.norm(out["rover_pos"][:, -1, :, None] - np.asarray(states.poi_pos)[:, None], axis=-1).min(axis=1).sum(axis=-1),
+        coverage_distance=np.asarray(jax.vmap(coverage_distance)(out["rover_pos"][:, -1], states.poi_pos)),
         pois_observed=observed[:, -1].sum(axis=-1),
     )
     return Rollout(
@@ -141,6 +141,7 @@ class MissionStats:
     beside it, not folded into it."""
 
     first_observed: np.ndarray  # [E, P] step of each POI's first observation (0: at the start)
+    pois_observed: np.ndarray  # [E]
     time_to_all: np.ndarray  # [E] step at which the last POI was first observed
     path_length: np.ndarray  # [E, N] distance each rover drove
     collisions: np.ndarray  # [E]
@@ -155,12 +156,23 @@ class MissionStats:
         latest = first.max(axis=1)
         return cls(
             first_observed=first,
+            pois_observed=data.stats.pois_observed,
             time_to_all=np.where(success, latest, np.nan),
             path_length=np.linalg.norm(np.diff(data.rover_pos, axis=1), axis=-1).sum(axis=1),
             collisions=data.stats.collisions,
             trap_contacts=data.stats.trap_contacts,
             success=success,
         )
+
+    def summary(self) -> dict[str, float]:
+        """Means over episodes; ``time_to_all`` over the successful ones (NaN if none)."""
+        return {
+            "success": float(self.success.mean()),
+            "time_to_all": float(np.nanmean(self.time_to_all)) if self.success.any() else float("nan"),
+            "pois_observed": float(self.pois_observed.mean()),
+            "collisions": float(self.collisions.mean()),
+            "trap_contacts": float(self.trap_contacts.mean()),
+        }
 
 
 def normalized_score(reward: float, random_reward: float, oracle_reward: float) -> float:

@@ -77,7 +77,7 @@ def _metrics_rows(stats: MissionStats, mission: Mission) -> list[dict[str, objec
         row: dict[str, object] = {
             "episode": e,
             "success": bool(stats.success[e]),
-            "pois_observed": int(np.isfinite(stats.first_observed[e]).sum()),
+            "pois_observed": int(stats.pois_observed[e]),
             "time_to_all": stats.time_to_all[e],
             "collisions": stats.collisions[e],
             "trap_contacts": stats.trap_contacts[e],
@@ -117,7 +117,7 @@ def mission_report(stats: MissionStats, mission: Mission, policy: str, fail_step
         + (f"; failures: {', '.join(failed)}" if failed else "") + ".\n",
         markdown_table(
             ["success", "POIs observed", "time to observe all (steps)", "collisions", "trap contacts", "total path length"],
-            [[stats.success[0], f"{np.isfinite(stats.first_observed[0]).sum()}/{mission.params.num_pois}", stats.time_to_all[0],
+            [[stats.success[0], f"{stats.pois_observed[0]}/{mission.params.num_pois}", stats.time_to_all[0],
               stats.collisions[0], stats.trap_contacts[0], stats.path_length[0].sum()]],
         ),
         markdown_table(["POI", "first observed (step)"], [[n, t] for n, t in zip(mission.poi_names, stats.first_observed[0])]),
@@ -126,10 +126,11 @@ def mission_report(stats: MissionStats, mission: Mission, policy: str, fail_step
         ]),
     ]
     if len(stats.success) > 1:
-        timing = f"time to observe all {np.nanmean(stats.time_to_all):.1f} steps (successful episodes)" if stats.success.any() else "none succeeded"
+        mean = stats.summary()
+        timing = f"time to observe all {mean['time_to_all']:.1f} steps (successful episodes)" if stats.success.any() else "none succeeded"
         lines.append(
-            f"Over {len(stats.success)} episodes: success {stats.success.mean():.0%}, {timing}, "
-            f"collisions {stats.collisions.mean():.2f}, trap contacts {stats.trap_contacts.mean():.2f}.\n"
+            f"Over {len(stats.success)} episodes: success {mean['success']:.0%}, {timing}, "
+            f"collisions {mean['collisions']:.2f}, trap contacts {mean['trap_contacts']:.2f}.\n"
         )
     return "\n".join(lines)
 
@@ -218,15 +219,7 @@ def stress_rows(policies: list[Policy], mission: Mission, episodes: int, seed: i
         fail_step = random_failures(jax.random.fold_in(key, 1), finish, mission.params.num_rovers)
         failed = MissionStats.of(rollout(policy, key, mission.params, episodes, fail_step=fail_step))
         for condition, stats in (("no failure", clean), ("one rover fails", failed)):
-            rows.append({
-                "policy": policy.name,
-                "condition": condition,
-                "success": float(stats.success.mean()),
-                "time_to_all": float(np.nanmean(stats.time_to_all)) if stats.success.any() else float("nan"),
-                "pois_observed": float(np.isfinite(stats.first_observed).sum(axis=1).mean()),
-                "collisions": float(stats.collisions.mean()),
-                "trap_contacts": float(stats.trap_contacts.mean()),
-            })
+            rows.append({"policy": policy.name, "condition": condition, **stats.summary()})
         curves[policy.name] = (fail_step.min(axis=1) / np.maximum(finish, 1), failed.success)
     return rows, curves
 

@@ -13,9 +13,10 @@ The oracle assigns rovers to POIs by the Hungarian method (minimum total distanc
 ``linear_sum_assignment``) and then drives each rover to its POI with a go-to-goal
 controller on the known dynamics that heads along the tangent of any trap or other rover
 in its way. Rovers whose POI is observed take over the POIs left open, by a failed rover or
-because there are more POIs than rovers, one rover per POI (:func:`oracle_goals`). It is a strong yardstick, not a perfect one: in crowded layouts rovers still
-brush each other or a crater now and then (about 0.3 trap contacts per episode on
-``paper-3`` and 1.7 on ``paper-5``, against 5 and 13 for the random policy).
+because there are more POIs than rovers, one rover per POI (:func:`oracle_goals`). It is a
+strong yardstick, not a perfect one: in crowded layouts rovers still brush each other or a
+crater now and then (about 0.3 trap contacts per episode on ``paper-3`` and 1.7 on
+``paper-5``, against 5 and 13 for the random policy).
 """
 
 from __future__ import annotations

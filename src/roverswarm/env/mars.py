@@ -102,19 +102,13 @@ def validate_params(params: EnvParams) -> EnvParams:
     for name in ("map_size", "rover_radius", "poi_radius", "dt", "mass"):
         value = float(getattr(params, name))
         require(value > 0, f"{name} must be positive, got {value}")
-    require(bool(np.all(np.asarray(params.observe_radius) > 0)), f"observe_radius must be positive, got {params.observe_radius}")
-    trap_radius = np.asarray(params.trap_radius, dtype=float)
-    require(
-        trap_radius.ndim == 0 or trap_radius.shape == (params.num_traps,),
-        f"trap_radius must be a number or one value per trap ({params.num_traps}), "
-        f"got shape {trap_radius.shape}",
-    )
-    require(bool(np.all(trap_radius > 0)), f"trap_radius must be positive, got {trap_radius}")
-    observe_radius = np.asarray(params.observe_radius, dtype=float)
-    require(
-        observe_radius.ndim == 0 or observe_radius.shape == (params.num_pois,),
-        f"observe_radius must be a number or one value per POI ({params.num_pois}), got shape {observe_radius.shape}",
-    )
+    for name, count, what in (("trap_radius", params.num_traps, "trap"), ("observe_radius", params.num_pois, "POI")):
+        radius = np.asarray(getattr(params, name), dtype=float)
+        require(
+            radius.ndim == 0 or radius.shape == (count,),
+            f"{name} must be a number or one value per {what} ({count}), got shape {radius.shape}",
+        )
+        require(bool(np.all(radius > 0)), f"{name} must be positive, got {radius}")
     for name, rows in (("fixed_pois", params.num_pois), ("fixed_traps", params.num_traps), ("fixed_starts", params.num_rovers), ("start_zone", 2)):
         value = getattr(params, name)
         require(
@@ -138,6 +132,11 @@ def observe_radii(params: EnvParams) -> jax.Array:
 def _pairwise_dist(a: jax.Array, b: jax.Array) -> jax.Array:
     """[A, 2], [B, 2] -> [A, B] Euclidean distances."""
     return jnp.sqrt(jnp.sum(jnp.square(a[:, None, :] - b[None, :, :]), axis=-1))
+
+
+def coverage_distance(rover_pos: jax.Array, poi_pos: jax.Array) -> jax.Array:
+    """The swarm's coverage distance: sum over POIs [P, 2] of the nearest rover's [N, 2] distance."""
+    return jnp.sum(jnp.min(_pairwise_dist(rover_pos, poi_pos), axis=0))
 
 
 def _first_clear(candidates: jax.Array, obstacles: jax.Array, clearance: jax.Array) -> jax.Array:
@@ -274,7 +273,7 @@ def step_env(
     collisions = jnp.sum(touching, axis=1)
     in_trap = _pairwise_dist(pos, state.trap_pos) < params.rover_radius + trap_radii(params)
     trap_contacts = jnp.sum(in_trap, axis=1)
-    coverage = jnp.sum(jnp.min(_pairwise_dist(pos, state.poi_pos), axis=0))
+    coverage = coverage_distance(pos, state.poi_pos)
     rewards = -coverage - params.collision_penalty * collisions - params.trap_penalty * trap_contacts
 
     truncated = state.time >= params.max_steps
