@@ -6,16 +6,22 @@ its own global-norm clipping and a hand-written first Adam step (optax defaults,
 moments). On a fixed random batch (some transitions terminated, target networks perturbed
 away from the online ones) and for both algorithms (``maddpg``: centralised critic over all
 observations and actions; ``ddpg``: the agent's own), with and without importance weights,
-it checks
+with policy ensembles (K sub-policies, one batch per partition, eq. 9-11) and inferred
+policies (eq. 7-8), it checks
 
-* the per-sample TD loss ``(Q - y)^2`` [N, B], hence the bootstrapped targets y with the
-  bootstrap cut on termination;
+* the per-sample TD loss ``(Q - y)^2`` [N * K, B], hence the bootstrapped targets y with the
+  bootstrap cut on termination, the target sub-policy each agent ran in the transition, and
+  (inferred policies) the other agents' approximations instead of their target actors;
 * the (weighted) critic loss [N] and the actor loss [N];
-* the updated critics, actors (actor step taken on the *updated* critic), target critics
-  and target actors.
+* the updated critics, actors (each sub-policy on its own batch, on the *updated* critic),
+  target critics, target actors and approximations (one step on the Gaussian negative
+  log-likelihood minus lambda times the entropy; an agent's approximation of itself unused).
 
-A last test checks that the comparison discriminates: the reference with the actor step on
-the old critic, or without cutting the bootstrap at termination, disagrees with the code.
+K = 1 without inference is plain MADDPG: the same reference, the same code path.
+The last tests check that the comparison discriminates: the reference with the actor step
+on the old critic, without cutting the bootstrap at termination, with the true target
+policies in place of the approximations, or with sub-policy 0 for every agent in the target,
+disagrees with the code.
 """
 
 from __future__ import annotations
@@ -32,6 +38,16 @@ N, O, A, B = 3, 20, 2, 32
 # float32; the loosest entries are Adam steps on gradients of the order of eps, where the
 # step lr * g / (|g| + eps) inherits the rounding of g (observed up to ~2e-5)
 TOL = dict(atol=1e-5, rtol=1e-4)
+# updated parameters: an Adam step moves each one by about lr = 1e-2, by lr * g / (|g| + eps)
+# from zero moments, so where g is near eps it inherits g's float32 rounding: a handful of the
+# ensembles' ~1e5 parameters differ by up to ~4e-4 (4% of a step); a real error moves many
+
+
+def assert_parameters_close(got, want):
+    """All but 1 in 10^3 entries within TOL, and every entry within 10% of an Adam step."""
+    got, want = np.asarray(got), np.asarray(want)
+    off = ~np.isclose(got, want, **TOL)
+    assert off.mean() <= 1e-3 and np.abs(got - want).max() < 1e-3, (off.sum(), np.abs(got - want).max())
 ADAM_B1, ADAM_B2, ADAM_EPS = 0.9, 0.999, 1e-8
 
 
@@ -57,7 +73,7 @@ def actor(params, obs):
 def q_value(algo, params, obs, actions, i):
     """Agent i's Q [B] of observations [B, N, O] and actions [B, N, A]."""
     if algo == "maddpg":
-        inputs = jnp.concatenate([obs.reshape(B, N * O), actions.reshape(B, N * A)], axis=1)
+        inputs = jnp.concatenate([obs.reshape(len(obs), N * O), actions.reshape(len(obs), N * A)], axis=1)
     else:
         inputs = jnp.concatenate([obs[:, i], actions[:, i]], axis=1)
     return mlp(params, inputs)[:, 0]
@@ -77,47 +93,93 @@ def clip_and_adam(params, grads, clip, lr):
     return jax.tree.map(step, params, grads)
 
 
-def reference_update(cfg, state, batch, weights, actor_on_new_critic=True, cut_bootstrap=True):
-    """Every agent's update, one agent at a time; results stacked on a leading [N] axis."""
-    agent = lambda tree, i: jax.tree.map(lambda x: x[i], tree)  # noqa: E731
+def gaussian(params, obs):
+    """An inferred policy's (mean, log_std) on observations [B, O]: tanh(MLP) and the clipped log-std."""
+    mean = jnp.tanh(mlp({"params": params["params"]["MLP_0"]}, obs))
+    return mean, jnp.clip(params["params"]["log_std"], -5.0, 1.0)
+
+
+def reference_update(cfg, state, batch, weights, actor_on_new_critic=True, cut_bootstrap=True, true_targets=False, ignore_sub_policy=False):
+    """Every agent's update, one agent at a time; results stacked on a leading [N] axis
+    ([N * K] for the actors, [N * K, B] for the TD loss). ``batch`` [N * K, B, ...] holds agent
+    i's batch from sub-policy k's partition at i * K + k."""
+    K = cfg.ensemble
+    pick = lambda tree, i: jax.tree.map(lambda x: x[i], tree)  # noqa: E731
     soft = lambda target, online: jax.tree.map(lambda t, o: (1 - cfg.tau) * t + cfg.tau * o, target, online)  # noqa: E731
     results = []
     for i in range(N):
-        obs, actions, rewards = batch.obs[i], batch.actions[i], batch.rewards[i]
-        next_obs, terminated = batch.next_obs[i], batch.terminated[i]
-        w = jnp.ones(B) if weights is None else weights[i]
+        rows = [i * K + k for k in range(K)]
+        joined = lambda x: jnp.concatenate([x[r] for r in rows])  # noqa: E731  the K batches as one
+        obs, actions, rewards = joined(batch.obs), joined(batch.actions), joined(batch.rewards)
+        next_obs, terminated = joined(batch.next_obs), joined(batch.terminated)
+        policy = joined(batch.policy) if K > 1 and not ignore_sub_policy else jnp.zeros((K * B, N), jnp.int32)
+        w = jnp.ones(K * B) if weights is None else joined(weights)
+        result = {}
 
-        next_actions = jnp.stack([actor(agent(state.target_actor, j), next_obs[:, j])[0] for j in range(N)], axis=1)
+        approx = None
+        if cfg.infer_policies:  # eq. 7: one step on each other agent's approximation, before the critic
+            approx, infer_loss = [], []
+            for j in range(N):
+                params = pick(pick(state.approx, i), j)
+
+                def nll(p, j=j):
+                    mean, log_std = gaussian(p, obs[:, j])
+                    logp = -0.5 * ((actions[:, j] - mean) / jnp.exp(log_std)) ** 2 - log_std - 0.5 * np.log(2 * np.pi)
+                    entropy = jnp.sum(log_std + 0.5 * np.log(2 * np.pi * np.e))
+                    return -jnp.mean(logp.sum(-1)) - cfg.infer_entropy * entropy
+
+                if j != i:
+                    infer_loss.append(nll(params))
+                    params = clip_and_adam(params, jax.grad(nll)(params), cfg.grad_clip, cfg.actor_lr)
+                approx.append(params)
+            result["infer_loss"] = jnp.mean(jnp.stack(infer_loss))
+
+        def target_action(j):
+            if cfg.infer_policies and j != i and not true_targets:
+                return gaussian(approx[j], next_obs[:, j])[0]  # eq. 8: the approximation's mean
+            every = [actor(pick(state.target_actor, j * K + k), next_obs[:, j])[0] for k in range(K)]
+            return sum(jnp.where((policy[:, j] == k)[:, None], every[k], 0.0) for k in range(K))
+
+        next_actions = jnp.stack([target_action(j) for j in range(N)], axis=1)
         not_done = 1.0 - terminated.astype(jnp.float32) if cut_bootstrap else 1.0
-        y = rewards[:, i] + cfg.gamma * not_done * q_value(cfg.algo, agent(state.target_critic, i), next_obs, next_actions, i)
+        y = rewards[:, i] + cfg.gamma * not_done * q_value(cfg.algo, pick(state.target_critic, i), next_obs, next_actions, i)
 
         def td_loss(critic_params):
             return (q_value(cfg.algo, critic_params, obs, actions, i) - y) ** 2
 
-        old_critic = agent(state.critic, i)
+        old_critic = pick(state.critic, i)
         critic_grads = jax.grad(lambda p: jnp.mean(w * td_loss(p)))(old_critic)
         critic = clip_and_adam(old_critic, critic_grads, cfg.grad_clip, cfg.critic_lr)
         judge = critic if actor_on_new_critic else old_critic
 
-        def actor_loss(actor_params):
-            own, pre = actor(actor_params, obs[:, i])
-            joint = jnp.concatenate([actions[:, :i], own[:, None], actions[:, i + 1 :]], axis=1)
-            return -jnp.mean(q_value(cfg.algo, judge, obs, joint, i)) + cfg.action_penalty * jnp.mean(pre**2)
+        actors, actor_losses = [], []
+        for k, row in enumerate(rows):  # eq. 11: sub-policy k on its own partition's batch
 
-        old_actor = agent(state.actor, i)
-        new_actor = clip_and_adam(old_actor, jax.grad(actor_loss)(old_actor), cfg.grad_clip, cfg.actor_lr)
-        results.append(
-            dict(
-                td_loss=td_loss(old_critic),
-                critic_loss=jnp.mean(w * td_loss(old_critic)),
-                actor_loss=actor_loss(old_actor),
-                critic=critic,
-                actor=new_actor,
-                target_critic=soft(agent(state.target_critic, i), critic),
-                target_actor=soft(agent(state.target_actor, i), new_actor),
-            )
+            def actor_loss(actor_params, row=row):
+                own, pre = actor(actor_params, batch.obs[row][:, i])
+                joint = batch.actions[row].at[:, i].set(own)
+                return -jnp.mean(q_value(cfg.algo, judge, batch.obs[row], joint, i)) + cfg.action_penalty * jnp.mean(pre**2)
+
+            old_actor = pick(state.actor, i * K + k)
+            actors.append(clip_and_adam(old_actor, jax.grad(actor_loss)(old_actor), cfg.grad_clip, cfg.actor_lr))
+            actor_losses.append(actor_loss(old_actor))
+        stack = lambda trees: jax.tree.map(lambda *xs: jnp.stack(xs), *trees)  # noqa: E731
+        old_targets = [pick(state.target_actor, i * K + k) for k in range(K)]
+        result.update(
+            td_loss=td_loss(old_critic).reshape(K, B),
+            critic_loss=jnp.mean(w * td_loss(old_critic)),
+            actor_loss=jnp.mean(jnp.stack(actor_losses)),
+            critic=critic,
+            actor=stack(actors),
+            target_critic=soft(pick(state.target_critic, i), critic),
+            target_actor=stack([soft(t, a) for t, a in zip(old_targets, actors)]),
         )
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *results)
+        if approx is not None:
+            result["approx"] = stack(approx)
+        results.append(result)
+    out = jax.tree.map(lambda *xs: jnp.stack(xs), *results)
+    flat = lambda tree: jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), tree)  # noqa: E731  [N, K] -> [N * K]
+    return {**out, "td_loss": flat(out["td_loss"]), "actor": flat(out["actor"]), "target_actor": flat(out["target_actor"])}
 
 
 # ----------------------------------------------------------------------------- fixtures
@@ -127,25 +189,47 @@ def perturbed(tree, rng):
     return jax.tree.map(lambda x: x + 0.1 * rng.standard_normal(x.shape).astype(np.float32), tree)
 
 
-@pytest.fixture(scope="module", params=[(algo, weighted) for algo in ("maddpg", "ddpg") for weighted in (False, True)], ids=lambda p: f"{p[0]}-{'weighted' if p[1] else 'unweighted'}")
+CASES = {
+    "maddpg": dict(algo="maddpg"),
+    "maddpg-weighted": dict(algo="maddpg", weighted=True),
+    "ddpg": dict(algo="ddpg"),
+    "ddpg-weighted": dict(algo="ddpg", weighted=True),
+    "maddpg-ensemble3-weighted": dict(algo="maddpg", ensemble=3, weighted=True),
+    "ddpg-ensemble2": dict(algo="ddpg", ensemble=2),
+    "maddpg-infer": dict(algo="maddpg", infer_policies=True),
+    "maddpg-ensemble2-infer": dict(algo="maddpg", ensemble=2, infer_policies=True),
+}
+
+
+@pytest.fixture(scope="module", params=list(CASES), ids=list(CASES))
 def case(request):
     """(config, state, batch, weights, code's new state, code's info, reference results)."""
-    algo, weighted = request.param
+    options = dict(CASES[request.param])
+    weighted = options.pop("weighted", False)
     # pinned (not the defaults): float32 agreement was established at these widths and rates
-    cfg = AlgoConfig(algo=algo, actor_lr=1e-2, critic_lr=1e-2, hidden=(64, 64))
+    cfg = AlgoConfig(actor_lr=1e-2, critic_lr=1e-2, hidden=(64, 64), infer_entropy=0.05, **options)
+    K = cfg.ensemble
     rng = np.random.default_rng(0)
     state = init_learner(jax.random.PRNGKey(0), cfg, N, O)
     state = state.replace(target_actor=perturbed(state.target_actor, rng), target_critic=perturbed(state.target_critic, rng))
     f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    G = N * K
+    policy = None
+    if K > 1:  # batch i * K + k comes from agent i's partition k: agent i ran k, the others anything
+        policy = rng.integers(0, K, (G, B, N))
+        for g in range(G):
+            policy[g, :, g // K] = g % K
+        policy = jnp.asarray(policy, jnp.int32)
     batch = Transition(
-        obs=f32(rng.standard_normal((N, B, N, O))),
-        actions=f32(rng.uniform(-1, 1, (N, B, N, A))),
-        rewards=f32(rng.standard_normal((N, B, N))),
-        next_obs=f32(rng.standard_normal((N, B, N, O))),
-        terminated=jnp.asarray(rng.random((N, B)) < 0.3),
+        obs=f32(rng.standard_normal((G, B, N, O))),
+        actions=f32(rng.uniform(-1, 1, (G, B, N, A))),
+        rewards=f32(rng.standard_normal((G, B, N))),
+        next_obs=f32(rng.standard_normal((G, B, N, O))),
+        terminated=jnp.asarray(rng.random((G, B)) < 0.3),
+        policy=policy,
     )
-    assert 0 < int(batch.terminated.sum()) < N * B
-    weights = f32(rng.uniform(0.1, 2.0, (N, B))) if weighted else None
+    assert 0 < int(batch.terminated.sum()) < G * B
+    weights = f32(rng.uniform(0.1, 2.0, (G, B))) if weighted else None
     new_state, info = jax.jit(update, static_argnums=0)(cfg, state, batch, weights)
     return cfg, state, batch, weights, new_state, info, reference_update(cfg, state, batch, weights)
 
@@ -154,8 +238,8 @@ def case(request):
 
 
 def test_td_loss_matches_reference(case):
-    *_, info, ref = case
-    assert info["td_loss"].shape == (N, B)
+    cfg, *_, info, ref = case
+    assert info["td_loss"].shape == (N * cfg.ensemble, B)
     np.testing.assert_allclose(info["td_loss"], ref["td_loss"], **TOL)
 
 
@@ -166,12 +250,15 @@ def test_critic_and_actor_losses_match_reference(case):
     np.testing.assert_allclose(info["actor_loss"], ref["actor_loss"], **TOL)
 
 
-@pytest.mark.parametrize("network", ["critic", "actor", "target_critic", "target_actor"])
+@pytest.mark.parametrize("network", ["critic", "actor", "target_critic", "target_actor", "approx"])
 def test_updated_parameters_match_reference(case, network):
-    _, state, *_, new_state, _, ref = case
+    cfg, state, *_, new_state, _, ref = case
+    if network == "approx" and not cfg.infer_policies:
+        assert new_state.approx is None
+        return
     moved = jax.tree.map(lambda new, old: np.abs(new - old).max(), getattr(new_state, network), getattr(state, network))
     assert max(jax.tree.leaves(moved)) > 1e-4  # the update did change this network
-    jax.tree.map(lambda got, want: np.testing.assert_allclose(got, want, **TOL), getattr(new_state, network), ref[network])
+    jax.tree.map(assert_parameters_close, getattr(new_state, network), ref[network])
 
 
 @pytest.mark.parametrize("variant", [dict(actor_on_new_critic=False), dict(cut_bootstrap=False)], ids=["actor_on_old_critic", "no_bootstrap_cut"])
@@ -182,3 +269,39 @@ def test_reference_variants_are_caught(case, variant):
     want = wrong["td_loss"] if "cut_bootstrap" in variant else wrong["actor"]
     gap = max(jax.tree.leaves(jax.tree.map(lambda g, w: np.abs(g - w).max(), got, want)))
     assert gap > 1e-3, variant
+
+
+@pytest.mark.parametrize("variant", [dict(true_targets=True), dict(ignore_sub_policy=True)], ids=["true_target_policies", "target_sub_policy_0"])
+def test_the_target_actions_are_caught(case, variant):
+    """Inferred policies: the targets use the approximations; ensembles: the target sub-policy
+    each agent ran in the transition. The reference without that disagrees with the code."""
+    cfg, state, batch, weights, new_state, info, _ = case
+    if ("true_targets" in variant and not cfg.infer_policies) or ("ignore_sub_policy" in variant and cfg.ensemble == 1):
+        pytest.skip("the variant changes nothing for this case")
+    wrong = reference_update(cfg, state, batch, weights, **variant)
+    assert np.abs(np.asarray(info["td_loss"]) - np.asarray(wrong["td_loss"])).max() > 1e-3
+
+
+def test_inferred_policy_loss_and_error_match_reference(case):
+    cfg, state, batch, _, new_state, info, ref = case
+    if not cfg.infer_policies:
+        assert "infer_loss" not in info and "infer_error" not in info
+        return
+    np.testing.assert_allclose(info["infer_loss"], ref["infer_loss"], **TOL)
+    for i in range(N):  # an agent's approximation of itself never moves
+        mine = jax.tree.map(lambda new, old: np.abs(new[i, i] - old[i, i]).max(), new_state.approx, state.approx)
+        assert max(jax.tree.leaves(mine)) == 0.0
+    # the error is against the others' current deterministic actions (the sub-policy they ran)
+    K = cfg.ensemble
+    for i in range(N):
+        obs = jnp.concatenate([batch.obs[i * K + k] for k in range(K)])
+        policy = jnp.concatenate([batch.policy[i * K + k] for k in range(K)]) if K > 1 else jnp.zeros((K * B, N), jnp.int32)
+        errors = []
+        for j in range(N):
+            if j == i:
+                continue
+            every = [actor(jax.tree.map(lambda x: x[j * K + k], state.actor), obs[:, j])[0] for k in range(K)]
+            true = sum(jnp.where((policy[:, j] == k)[:, None], every[k], 0.0) for k in range(K))
+            mean = gaussian(jax.tree.map(lambda x: x[i, j], ref["approx"]), obs[:, j])[0]
+            errors.append(jnp.abs(mean - true).mean())
+        np.testing.assert_allclose(info["infer_error"][i], np.mean(errors), **TOL)

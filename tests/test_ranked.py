@@ -147,7 +147,7 @@ def test_importance_weights_match_their_definition():
     losses = distinct_losses(rng, 40)
     state = with_losses(buffer, state, losses)
     sample = buffer.sample(state, jax.random.PRNGKey(9))
-    weights = np.asarray(importance_weights(sample, state.size))
+    weights = np.asarray(importance_weights(sample))
     for agent in range(N):
         p = reference_probabilities(losses[agent], 2.0, 0.2)[np.asarray(sample.indices[agent])]
         w = 1.0 / (40 * p)  # w_i = (M P(i))^-1, scaled so the batch's largest weight is 1
@@ -160,7 +160,7 @@ def test_the_uniform_buffer_weighs_every_sample_equally():
     state = buffer.add(buffer.init(jax.tree.map(lambda x: x[0], transitions(0, 1))), transitions(0, 40))
     sample = buffer.sample(state, jax.random.PRNGKey(0))
     np.testing.assert_allclose(sample.probabilities, 1 / 40)
-    np.testing.assert_allclose(importance_weights(sample, state.size), 1.0)
+    np.testing.assert_allclose(importance_weights(sample), 1.0)
 
 
 def test_a_steep_alpha_on_a_nearly_empty_buffer_stays_finite():

@@ -63,6 +63,9 @@ class EvaluateCommand:
     """Evaluation episodes per policy (the same layouts for every policy)."""
     seed: int = 0
     """Seed of the evaluation episodes."""
+    sub_policies: Literal["random", "each"] = "random"
+    """Runs with --ensemble K: `random` draws every agent's sub-policy per episode, as in
+    training; `each` runs sub-policy k of all agents, for every k."""
 
 
 @dataclass(frozen=True)
@@ -176,7 +179,7 @@ def run_reproduce(cmd: ReproduceCommand) -> None:
 def run_evaluate(cmd: EvaluateCommand) -> None:
     from roverswarm.evaluate import evaluate_run
 
-    rows = evaluate_run(cmd.run, cmd.episodes, cmd.seed)
+    rows = evaluate_run(cmd.run, cmd.episodes, cmd.seed, cmd.sub_policies)
     table = Table(title=f"{cmd.run}: {cmd.episodes} deterministic episodes, seed {cmd.seed}")
     for column in rows[0]:
         table.add_column(column.replace("_", " "), justify="left" if column == "policy" else "right", no_wrap=column == "policy")

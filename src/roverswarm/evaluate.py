@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import partial
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
@@ -23,8 +24,9 @@ import numpy as np
 
 from roverswarm.env.mars import EnvParams, EnvState, coverage_distance, reset, step_env
 from roverswarm.errors import require
+from roverswarm.algos.maddpg import LearnerState
 from roverswarm.policies import ORACLE, RANDOM, ActFn, Plan, Policy, trained_policy
-from roverswarm.train import load_run, validate
+from roverswarm.train import TrainConfig, load_run, validate
 
 
 @dataclass(frozen=True)
@@ -180,21 +182,39 @@ def normalized_score(reward: float, random_reward: float, oracle_reward: float) 
     return (reward - random_reward) / (oracle_reward - random_reward)
 
 
-def evaluate_run(out, episodes: int = 1000, seed: int = 0) -> list[dict[str, float | str]]:
+SubPolicies = Literal["random", "each"]
+
+
+def run_policies(config: TrainConfig, learner: LearnerState, sub_policies: SubPolicies = "random", seed: int = 0) -> list[Policy]:
+    """Every seed's trained policy; with ensembles, a random sub-policy per agent and episode
+    as in training (``random``), or every sub-policy k of all agents in turn (``each``)."""
+    policies = []
+    for s in range(config.seeds):
+        actor = jax.tree.map(lambda x: x[s], learner.actor)
+        name = f"{config.learner.algo} seed {s}"
+        if config.learner.ensemble == 1:
+            policies.append(trained_policy(config.learner, actor, name))
+        elif sub_policies == "random":
+            policies.append(trained_policy(config.learner, actor, f"{name}, random sub-policies", seed=seed))
+        else:
+            policies += [trained_policy(config.learner, actor, f"{name}, sub-policy {k}", k) for k in range(config.learner.ensemble)]
+    return policies
+
+
+def evaluate_run(out, episodes: int = 1000, seed: int = 0, sub_policies: SubPolicies = "random") -> list[dict[str, float | str]]:
     """Deterministic episodes of every seed's trained policy in run folder ``out``, beside the
     random and oracle policies on the same episodes (same layouts), with the normalised score.
+    A run with policy ensembles runs as :func:`run_policies` says; the policy names say which.
 
     Returns one row per policy: ``policy``, the :meth:`EpisodeStats.summary` metrics and
     ``normalized_score``.
     """
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
+    require(sub_policies in ("random", "each"), f"--sub-policies must be 'random' or 'each', got '{sub_policies}'")
     config, learner = load_run(out)
     params = validate(config)
     key = jax.random.PRNGKey(seed)
-    policies = [
-        trained_policy(config.learner, jax.tree.map(lambda x: x[s], learner.actor), f"{config.learner.algo} seed {s}")
-        for s in range(config.seeds)
-    ]
+    policies = run_policies(config, learner, sub_policies, seed)
     results = {p.name: rollout(p, key, params, episodes).stats.summary() for p in (RANDOM, ORACLE, *policies)}
     low, high = results["random"]["episode_reward"], results["oracle"]["episode_reward"]
     return [

@@ -203,6 +203,31 @@ def _deterministic_act(config: AlgoConfig) -> ActFn:
     return act_fn
 
 
-def trained_policy(config: AlgoConfig, actor_params, name: str = "trained") -> Policy:
-    """The deterministic policy (no exploration noise) of trained actors [N, ...]."""
-    return Policy(name, _deterministic_act(config), weights=actor_params)
+@functools.lru_cache(maxsize=None)
+def _ensemble_act(config: AlgoConfig) -> ActFn:
+    def act_fn(key, obs, state, plan, weights, params):
+        return act(config, weights, obs, plan)  # plan: this episode's sub-policy of every agent [N]
+
+    return act_fn
+
+
+def _sub_policy_plan(num_policies: int, sub_policy: int | None, seed: int) -> PlanFn:
+    """Per episode, the sub-policy every agent runs: ``sub_policy``, or a uniform draw per agent
+    and episode as in training (the same draws for the same ``seed``)."""
+
+    def plan(states: EnvState, params: EnvParams) -> np.ndarray:
+        shape = states.rover_pos.shape[:-1]  # [E, N]
+        if sub_policy is not None:
+            return np.full(shape, sub_policy, np.int32)
+        return np.random.default_rng(seed).integers(0, num_policies, shape).astype(np.int32)
+
+    return plan
+
+
+def trained_policy(config: AlgoConfig, actor_params, name: str = "trained", sub_policy: int | None = None, seed: int = 0) -> Policy:
+    """The deterministic policy (no exploration noise) of trained actors [N * K, ...]. With
+    ensembles (K > 1) every agent runs sub-policy ``sub_policy``, or, if None, one drawn per
+    episode as in training (by a generator seeded with ``seed``)."""
+    if config.ensemble == 1:
+        return Policy(name, _deterministic_act(config), weights=actor_params)
+    return Policy(name, _ensemble_act(config), _sub_policy_plan(config.ensemble, sub_policy, seed), weights=actor_params)

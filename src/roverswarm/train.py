@@ -151,6 +151,12 @@ def validate(config: TrainConfig) -> EnvParams:
     for name in ("actor_lr", "critic_lr", "tau", "grad_clip"):
         value = getattr(learner, name)
         require(value > 0, f"--{name.replace('_', '-')} must be positive, got {value}")
+    require(learner.ensemble >= 1, f"--ensemble must be >= 1 (sub-policies per agent), got {learner.ensemble}")
+    require(learner.infer_entropy >= 0, f"--infer-entropy must be >= 0, got {learner.infer_entropy}")
+    require(
+        not learner.infer_policies or learner.algo == "maddpg",
+        "--infer-policies needs --algo maddpg: a DDPG critic never sees the other agents' actions",
+    )
     require(0 <= learner.gamma <= 1, f"--gamma must be in [0, 1], got {learner.gamma}")
     for name in ("noise_std", "noise_final", "noise_decay_episodes"):
         value = getattr(config, name)
@@ -172,7 +178,7 @@ class Runner:
     updates: jax.Array  # [] int32, updates of every agent per seed so far (shared)
 
 
-def example_transition(params: EnvParams) -> Transition:
+def example_transition(config: TrainConfig, params: EnvParams) -> Transition:
     n, o = params.num_rovers, observation_size(params)
     return Transition(
         obs=jnp.zeros((n, o)),
@@ -180,13 +186,16 @@ def example_transition(params: EnvParams) -> Transition:
         rewards=jnp.zeros((n,)),
         next_obs=jnp.zeros((n, o)),
         terminated=jnp.zeros((), bool),
+        policy=jnp.zeros((n,), jnp.int32) if config.learner.ensemble > 1 else None,
     )
 
 
 def make_buffer(config: TrainConfig, params: EnvParams) -> Buffer:
+    """The replay of ``config``, with one partition per sub-policy of every agent if K > 1."""
+    k = config.learner.ensemble
     if config.replay == "ranked":
-        return ranked_buffer(config.buffer_size, config.batch_size, params.num_rovers, config.alpha, config.beta)
-    return uniform_buffer(config.buffer_size, config.batch_size, params.num_rovers)
+        return ranked_buffer(config.buffer_size, config.batch_size, params.num_rovers, config.alpha, config.beta, k)
+    return uniform_buffer(config.buffer_size, config.batch_size, params.num_rovers, k)
 
 
 def init_runner(config: TrainConfig, params: EnvParams, buffer: Buffer) -> Runner:
@@ -194,7 +203,7 @@ def init_runner(config: TrainConfig, params: EnvParams, buffer: Buffer) -> Runne
     keys = jax.vmap(lambda s: jax.random.fold_in(jax.random.PRNGKey(config.seed), s))(jnp.arange(config.seeds))
     init_keys, run_keys = jnp.split(jax.vmap(jax.random.split)(keys), 2, axis=1)
     learner = jax.vmap(lambda k: init_learner(k, config.learner, params.num_rovers, observation_size(params)))(init_keys[:, 0])
-    buffers = jax.vmap(lambda _: buffer.init(example_transition(params)))(jnp.arange(config.seeds))
+    buffers = jax.vmap(lambda _: buffer.init(example_transition(config, params)))(jnp.arange(config.seeds))
     counter = lambda: jnp.zeros((), jnp.int32)  # noqa: E731 (separate arrays: the runner is donated)
     return Runner(learner=learner, buffer=buffers, key=run_keys[:, 0], episodes=counter(), updates=counter())
 
@@ -208,20 +217,27 @@ def noise_scale(config: TrainConfig, episodes: jax.Array) -> jax.Array:
 
 
 def collect(config: TrainConfig, params: EnvParams, actor, key: jax.Array, noise_std: jax.Array):
-    """E episodes of one seed with Gaussian exploration noise of std ``noise_std``.
+    """E episodes of one seed with Gaussian exploration noise of std ``noise_std``; with
+    ensembles, every agent runs one sub-policy per episode, drawn uniformly in each environment.
 
     Returns transitions [T, E, ...] and per-episode stats [E] (reward summed over agents and
     steps, per-agent rewards [E, N], collisions, trap contacts, final coverage distance).
     """
     k_reset, k_steps = jax.random.split(key)
     obs, state = jax.vmap(reset, in_axes=(0, None))(jax.random.split(k_reset, config.num_envs), params)
+    k = config.learner.ensemble
+    policy = None
+    if k > 1:
+        policy = jax.random.randint(jax.random.fold_in(key, 1), (config.num_envs, params.num_rovers), 0, k)
 
-    def body(carry, k):
+    def body(carry, step_key):
         obs, state = carry
-        noise = noise_std * jax.random.normal(k, (config.num_envs, params.num_rovers, ACTION_SIZE))
-        actions = jnp.clip(act(config.learner, actor, obs) + noise, -1.0, 1.0)
+        noise = noise_std * jax.random.normal(step_key, (config.num_envs, params.num_rovers, ACTION_SIZE))
+        actions = jnp.clip(act(config.learner, actor, obs, policy) + noise, -1.0, 1.0)
         next_obs, state, rewards, terminated, _, info = jax.vmap(step_env, in_axes=(0, 0, None))(state, actions, params)
-        transition = Transition(obs=obs, actions=actions, rewards=rewards, next_obs=next_obs, terminated=terminated)
+        transition = Transition(
+            obs=obs, actions=actions, rewards=rewards, next_obs=next_obs, terminated=terminated, policy=policy
+        )
         stats = (jnp.sum(info["collisions"], -1) / 2, jnp.sum(info["trap_contacts"], -1), info["coverage_distance"])
         return (next_obs, state), (transition, stats)
 
@@ -244,7 +260,7 @@ def learn(config: TrainConfig, buffer: Buffer, learner: LearnerState, buffer_sta
     Info [N] per agent: the update's losses and Q, and what was sampled (its mean and max TD
     loss, and the fraction drawn from the newest 10% of the replay)."""
     sample = buffer.sample(buffer_state, key)
-    weights = importance_weights(sample, buffer_state.size) if config.importance_weights else None
+    weights = importance_weights(sample) if config.importance_weights else None
     learner, info = update(config.learner, learner, sample.batch, weights)
     td_loss = info.pop("td_loss")
     buffer_state = buffer.set_priorities(buffer_state, sample.indices, td_loss)
@@ -425,6 +441,14 @@ class Result:
 
 LEARNER_METRICS = ("critic_loss", "actor_loss", "q_mean", "sampled_loss", "sampled_loss_max", "sampled_newest")
 """Per-update metrics in ``metrics.csv`` (mean over agents; ``*_max``: max over agents and updates)."""
+INFER_METRICS = ("infer_loss", "infer_error")
+"""With --infer-policies: the approximations' loss, and the mean absolute error of their means
+against the other agents' current actions on the sampled observations."""
+
+
+def learner_metrics(config: TrainConfig) -> tuple[str, ...]:
+    """The per-update metrics ``config``'s run logs."""
+    return LEARNER_METRICS + (INFER_METRICS if config.learner.infer_policies else ())
 
 
 def metric_rows(config: TrainConfig, metrics: dict[str, np.ndarray], episodes: int, seconds: float) -> list[dict[str, float]]:
@@ -436,7 +460,7 @@ def metric_rows(config: TrainConfig, metrics: dict[str, np.ndarray], episodes: i
             row[f"agent_{i}_reward"] = float(r)
         for k in ("collisions", "trap_contacts", "coverage_distance"):
             row[k] = float(metrics[k][s])
-        for k in LEARNER_METRICS:
+        for k in learner_metrics(config):
             row[k] = float(_reduce(k, metrics[k][s], None))
         row["wall_seconds"] = seconds
         rows.append(row)

@@ -19,6 +19,26 @@ the freshly updated critic, and ``pre_i`` is the actor's pre-tanh output (the re
 code's 1e-3 action regulariser). Gradients are clipped to a global norm per network. All
 agents update at once: parameters are stacked on a leading agent axis and the per-agent
 update is vmapped.
+
+Policy ensembles (eq. 9-11, ``ensemble`` K > 1): agent i has K sub-policies mu_i^(k) (actors
+stacked agent-major on one [N * K] axis: sub-policy k of agent i at i * K + k). Each stored
+transition records the sub-policy every agent ran. An update of agent i draws one batch from
+each partition D_i^(k) (its transitions that sub-policy k of agent i made); sub-policy k's
+actor step uses its own batch (eq. 11), the critic step uses all K batches together (the
+critic of agent i learns from every sub-policy's experience), and the target actions are
+those of the target sub-policies each agent ran in the sampled transition. K = 1 is plain
+MADDPG.
+
+Inferred policies (eq. 7-8, ``infer_policies``): agent i keeps a Gaussian approximation
+mu_hat_i^j of every other agent j's policy (mean tanh(MLP(o_j)), learned log-std), fitted
+before each critic step to the other agents' actions in agent i's batch by minimising the
+negative log-likelihood minus ``infer_entropy`` (lambda) times the entropy. Agent i's target
+then uses the approximations' means for the other agents,
+
+    y = r_i + gamma * (1 - terminated) * Q'_i(x', mu_hat_i^1(o'_1), .., mu'_i(o'_i), .., mu_hat_i^N(o'_N))
+
+so it never reads the other agents' true policies. (The true policies are read only to
+log how far the approximations are from them.)
 """
 
 from __future__ import annotations
@@ -31,7 +51,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from roverswarm.algos.networks import MLP, actor_forward, critic_forward
+from roverswarm.algos.networks import MLP, GaussianPolicy, actor_forward, critic_forward
 from roverswarm.buffers.uniform import Transition
 from roverswarm.env.mars import ACTION_SIZE
 
@@ -61,18 +81,28 @@ class AlgoConfig:
     """Hidden layer widths of actors and critics (ReLU)."""
     action_penalty: float = 1e-3
     """Weight of the mean squared pre-tanh actor output in the actor loss."""
+    ensemble: int = 1
+    """Sub-policies per agent (policy ensembles, eq. 9-11): one drawn per agent per episode,
+    each learning from its own replay partition; 1 = plain MADDPG."""
+    infer_policies: bool = False
+    """MADDPG only: each agent learns Gaussian approximations of the other agents' policies
+    from the replay and uses them in its critic's target instead of their true policies (eq. 7-8)."""
+    infer_entropy: float = 1e-3
+    """lambda: weight of the entropy bonus in the approximations' loss (--infer-policies)."""
 
 
 @struct.dataclass
 class LearnerState:
     """Every agent's networks, targets and optimiser states, stacked on a leading [N] axis."""
 
-    actor: Any
-    critic: Any
-    target_actor: Any
-    target_critic: Any
-    actor_opt: Any
-    critic_opt: Any
+    actor: Any  # [N * K, ...]: sub-policy k of agent i at i * K + k
+    critic: Any  # [N, ...]
+    target_actor: Any  # [N * K, ...]
+    target_critic: Any  # [N, ...]
+    actor_opt: Any  # [N * K, ...]
+    critic_opt: Any  # [N, ...]
+    approx: Any = None  # [N, N, ...]: agent i's approximation of agent j's policy (inferred policies)
+    approx_opt: Any = None  # [N, N, ...]
 
 
 def networks(config: AlgoConfig) -> tuple[MLP, MLP]:
@@ -94,6 +124,11 @@ def critic_inputs(config: AlgoConfig, obs: jax.Array, actions: jax.Array, agent:
     return jnp.concatenate([obs[:, agent], actions[:, agent]], axis=-1)
 
 
+def approximation(config: AlgoConfig) -> GaussianPolicy:
+    """The module of an inferred policy (a Gaussian over the action, same widths as the actor)."""
+    return GaussianPolicy(config.hidden, ACTION_SIZE)
+
+
 def init_learner(key: jax.Array, config: AlgoConfig, num_agents: int, obs_size: int) -> LearnerState:
     """Fresh networks for ``num_agents`` agents; targets start equal to the online networks."""
     actor_net, critic_net = networks(config)
@@ -102,9 +137,17 @@ def init_learner(key: jax.Array, config: AlgoConfig, num_agents: int, obs_size: 
     obs = jnp.zeros((1, num_agents, obs_size))
     actions = jnp.zeros((1, num_agents, ACTION_SIZE))
     critic_in = critic_inputs(config, obs, actions, jnp.int32(0))
-    actor = jax.vmap(actor_net.init, in_axes=(0, None))(jax.random.split(k_actor, num_agents), obs[:, 0])
+    actor = jax.vmap(actor_net.init, in_axes=(0, None))(jax.random.split(k_actor, num_agents * config.ensemble), obs[:, 0])
     critic = jax.vmap(critic_net.init, in_axes=(0, None))(jax.random.split(k_critic, num_agents), critic_in)
+    approx = approx_opt = None
+    if config.infer_policies:
+        keys = jax.random.split(jax.random.fold_in(key, 2), num_agents * num_agents)
+        flat = jax.vmap(approximation(config).init, in_axes=(0, None))(keys, obs[:, 0])
+        approx = jax.tree.map(lambda x: x.reshape(num_agents, num_agents, *x.shape[1:]), flat)
+        approx_opt = jax.vmap(jax.vmap(optimizers(config)[0].init))(approx)
     return LearnerState(
+        approx=approx,
+        approx_opt=approx_opt,
         actor=actor,
         critic=critic,
         # copies, not aliases: the training loop donates its state buffers
@@ -115,11 +158,45 @@ def init_learner(key: jax.Array, config: AlgoConfig, num_agents: int, obs_size: 
     )
 
 
-def act(config: AlgoConfig, actor_params, obs: jax.Array) -> jax.Array:
-    """Deterministic actions of all agents: [..., N, O] observations -> [..., N, A] actions."""
+def act(config: AlgoConfig, actor_params, obs: jax.Array, policy: jax.Array | None = None) -> jax.Array:
+    """Deterministic actions of all agents: [..., N, O] observations -> [..., N, A] actions;
+    with ensembles (K > 1), of the sub-policies ``policy`` [..., N] the agents run."""
     actor_net, _ = networks(config)
     forward = lambda p, o: actor_forward(actor_net, p, o)[0]  # noqa: E731
-    return jax.vmap(forward, in_axes=(0, -2), out_axes=-2)(actor_params, obs)
+    if config.ensemble == 1:
+        return jax.vmap(forward, in_axes=(0, -2), out_axes=-2)(actor_params, obs)
+    params = jax.tree.map(lambda x: x.reshape(-1, config.ensemble, *x.shape[1:]), actor_params)  # [N, K, ...]
+    every = jax.vmap(jax.vmap(forward, in_axes=(0, None), out_axes=-2), in_axes=(0, -2), out_axes=-3)(params, obs)
+    return jnp.take_along_axis(every, policy[..., None, None], axis=-2)[..., 0, :]  # [..., N, K, A] -> [..., N, A]
+
+
+def approx_actions(config: AlgoConfig, approx, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """One agent's approximations [N] of every agent's policy on [..., N, O]: mean and log-std [..., N, A]."""
+    return jax.vmap(approximation(config).apply, in_axes=(0, -2), out_axes=-2)(approx, obs)
+
+
+def _infer(config: AlgoConfig, approx, approx_opt, agent: jax.Array, batch: Transition, true_actions: jax.Array):
+    """Agent ``agent``'s step on its approximations of the other agents' policies (eq. 7):
+    minimise -log N(a_j | mean_j(o_j), std_j) - lambda * entropy_j, summed over j != agent.
+
+    Returns the new approximations, their optimiser state and the mean absolute error of
+    their means against ``true_actions`` [B, N, A] (the others' current deterministic actions)."""
+    optimizer = optimizers(config)[0]
+    others = (jnp.arange(batch.actions.shape[-2]) != agent).astype(jnp.float32)
+
+    def loss(params, obs, actions):  # one other agent's approximation: [B, O], [B, A]
+        mean, log_std = approximation(config).apply(params, obs)
+        nll = 0.5 * jnp.square((actions - mean) * jnp.exp(-log_std)) + log_std + 0.5 * jnp.log(2 * jnp.pi)
+        entropy = log_std + 0.5 * jnp.log(2 * jnp.pi * jnp.e)
+        return jnp.mean(nll.sum(-1)) - config.infer_entropy * jnp.mean(entropy.sum(-1))
+
+    losses, grads = jax.vmap(jax.value_and_grad(loss), in_axes=(0, -2, -2))(approx, batch.obs, batch.actions)
+    grads = jax.tree.map(lambda g: g * others.reshape(-1, *([1] * (g.ndim - 1))), grads)  # its own: unused, left alone
+    updates, approx_opt = jax.vmap(optimizer.update)(grads, approx_opt, approx)
+    approx = optax.apply_updates(approx, updates)
+    error = jnp.abs(approx_actions(config, approx, batch.obs)[0] - true_actions).mean(axis=(0, 2))  # [N]
+    info = {"infer_loss": (losses * others).sum() / others.sum(), "infer_error": (error * others).sum() / others.sum()}
+    return approx, approx_opt, info
 
 
 def polyak(target, online, tau: float):
@@ -127,33 +204,44 @@ def polyak(target, online, tau: float):
     return jax.tree.map(lambda t, o: (1.0 - tau) * t + tau * o, target, online)
 
 
-def _agent_update(config: AlgoConfig, state: LearnerState, agent: jax.Array, batch: Transition, weights: jax.Array, target_actors):
-    """One agent's update (its slice of ``state``, its own ``batch`` [B, ...]). See module doc."""
+def _agent_update(config: AlgoConfig, state: LearnerState, agent: jax.Array, batch: Transition, weights: jax.Array, actors, target_actors):
+    """One agent's update: its slice of ``state`` (its K sub-policies), its K batches
+    [K, B, ...] (one per partition), every agent's ``actors`` and ``target_actors`` [N * K].
+    See the module docstring."""
     actor_net, critic_net = networks(config)
     actor_opt, critic_opt = optimizers(config)
+    joint = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), batch)  # the K batches as one [K * B, ...]
+    info = {}
 
-    next_actions = act(config, target_actors, batch.next_obs)  # [B, N, A]
-    next_q = critic_forward(critic_net, state.target_critic, critic_inputs(config, batch.next_obs, next_actions, agent))
-    not_done = 1.0 - batch.terminated.astype(jnp.float32)
-    target = jax.lax.stop_gradient(batch.rewards[:, agent] + config.gamma * not_done * next_q)
+    next_actions = act(config, target_actors, joint.next_obs, joint.policy)  # [K * B, N, A]
+    approx, approx_opt = state.approx, state.approx_opt
+    if config.infer_policies:
+        true_actions = act(config, actors, joint.obs, joint.policy)
+        approx, approx_opt, info = _infer(config, approx, approx_opt, agent, joint, true_actions)
+        inferred = approx_actions(config, approx, joint.next_obs)[0]
+        own = (jnp.arange(next_actions.shape[-2]) == agent)[:, None]
+        next_actions = jnp.where(own, next_actions, inferred)  # eq. 8: the others' approximations
+    next_q = critic_forward(critic_net, state.target_critic, critic_inputs(config, joint.next_obs, next_actions, agent))
+    not_done = 1.0 - joint.terminated.astype(jnp.float32)
+    target = jax.lax.stop_gradient(joint.rewards[:, agent] + config.gamma * not_done * next_q)
 
     def critic_loss(params):
-        q = critic_forward(critic_net, params, critic_inputs(config, batch.obs, batch.actions, agent))
+        q = critic_forward(critic_net, params, critic_inputs(config, joint.obs, joint.actions, agent))
         td = jnp.square(q - target)
-        return jnp.mean(weights * td), (td, q)
+        return jnp.mean(weights.reshape(-1) * td), (td, q)
 
     (c_loss, (td, q)), c_grads = jax.value_and_grad(critic_loss, has_aux=True)(state.critic)
     c_updates, critic_opt_state = critic_opt.update(c_grads, state.critic_opt, state.critic)
     critic = optax.apply_updates(state.critic, c_updates)
 
-    def actor_loss(params):
-        action, pre = actor_forward(actor_net, params, batch.obs[:, agent])
-        actions = batch.actions.at[:, agent].set(action)
-        q_pi = critic_forward(critic_net, critic, critic_inputs(config, batch.obs, actions, agent))
+    def actor_loss(params, obs, actions):  # one sub-policy on its own batch (eq. 11)
+        action, pre = actor_forward(actor_net, params, obs[:, agent])
+        actions = actions.at[:, agent].set(action)
+        q_pi = critic_forward(critic_net, critic, critic_inputs(config, obs, actions, agent))
         return -jnp.mean(q_pi) + config.action_penalty * jnp.mean(jnp.square(pre))
 
-    a_loss, a_grads = jax.value_and_grad(actor_loss)(state.actor)
-    a_updates, actor_opt_state = actor_opt.update(a_grads, state.actor_opt, state.actor)
+    a_loss, a_grads = jax.vmap(jax.value_and_grad(actor_loss))(state.actor, batch.obs, batch.actions)
+    a_updates, actor_opt_state = jax.vmap(actor_opt.update)(a_grads, state.actor_opt, state.actor)
     actor = optax.apply_updates(state.actor, a_updates)
 
     new_state = LearnerState(
@@ -163,20 +251,33 @@ def _agent_update(config: AlgoConfig, state: LearnerState, agent: jax.Array, bat
         target_critic=polyak(state.target_critic, critic, config.tau),
         actor_opt=actor_opt_state,
         critic_opt=critic_opt_state,
+        approx=approx,
+        approx_opt=approx_opt,
     )
-    info = {"critic_loss": c_loss, "actor_loss": a_loss, "q_mean": jnp.mean(q), "td_loss": td}
+    info.update(critic_loss=c_loss, actor_loss=a_loss.mean(), q_mean=jnp.mean(q), td_loss=td.reshape(weights.shape))
     return new_state, info
 
 
 def update(config: AlgoConfig, state: LearnerState, batch: Transition, weights: jax.Array | None = None):
-    """Update every agent once. ``batch`` has a leading agent axis [N, B, ...] (agent i's own
-    sample); ``weights`` [N, B] are optional importance weights of the critic loss.
+    """Update every agent once. ``batch`` has a leading group axis [N * K, B, ...]: agent i's
+    sample from its sub-policy k's partition at i * K + k (K = 1: agent i's own sample at i);
+    ``weights`` [N * K, B] are optional importance weights of the critic loss.
 
-    Returns ``(state, info)`` with ``critic_loss``, ``actor_loss``, ``q_mean`` [N] and the
-    per-sample ``td_loss`` (Q - y)^2 [N, B] for prioritised replay.
+    Returns ``(state, info)`` with ``critic_loss``, ``actor_loss`` (mean over sub-policies),
+    ``q_mean`` [N], with --infer-policies ``infer_loss`` and ``infer_error`` [N], and the
+    per-sample TD loss (Q - y)^2 [N * K, B] for prioritised replay.
     """
-    num_agents, batch_size = batch.rewards.shape[:2]
+    groups, batch_size = batch.rewards.shape[:2]
     if weights is None:
-        weights = jnp.ones((num_agents, batch_size))
-    per_agent = jax.vmap(_agent_update, in_axes=(None, 0, 0, 0, 0, None))
-    return per_agent(config, state, jnp.arange(num_agents), batch, weights, state.target_actor)
+        weights = jnp.ones((groups, batch_size))
+    by_agent = lambda tree: jax.tree.map(lambda x: x.reshape(-1, config.ensemble, *x.shape[1:]), tree)  # noqa: E731
+    flat = lambda tree: jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), tree)  # noqa: E731
+    sliced = state.replace(actor=by_agent(state.actor), target_actor=by_agent(state.target_actor), actor_opt=by_agent(state.actor_opt))
+    per_agent = jax.vmap(_agent_update, in_axes=(None, 0, 0, 0, 0, None, None))
+    num_agents = groups // config.ensemble
+    new, info = per_agent(
+        config, sliced, jnp.arange(num_agents), by_agent(batch), by_agent(weights), state.actor, state.target_actor
+    )
+    new = new.replace(actor=flat(new.actor), target_actor=flat(new.target_actor), actor_opt=flat(new.actor_opt))
+    info["td_loss"] = flat(info["td_loss"])
+    return new, info

@@ -1,7 +1,8 @@
 """The paper's experience sample optimizer (section III.C, eq. 12-15): rank-based replay.
 
-Shape legend: C capacity, N agents, B batch size per agent, F = 32 fan-out of the sampling
-table, C' = C rounded up to a multiple of F^2, NB = 2**14 loss bins.
+Shape legend: C capacity, N agents, K sub-policies per agent, G = N * K sampling groups,
+B batch size per group, F = 32 fan-out of the sampling table, C' = C rounded up to a
+multiple of F^2, NB = 2**14 loss bins.
 
 Every agent i keeps, for every stored transition, the latest TD loss ``(Q_i(s, a) - y)^2``
 of its own critic (eq. 14-15) and samples transition j with probability
@@ -9,7 +10,9 @@ of its own critic (eq. 14-15) and samples transition j with probability
     P_i(j) = (1 - beta) * p_j^alpha / sum_k p_k^alpha + beta / M                (eq. 12)
 
 where ``p_j`` is the rank of j's loss among the M stored transitions (eq. 13): 1 for the
-smallest loss, M for the largest. The paper writes ``p^a / sum p^a + beta``, which sums to
+smallest loss, M for the largest. With policy ensembles, each sub-policy k of agent i
+samples its own partition D_i^(k) (:mod:`roverswarm.buffers.partitions`) by this formula:
+M and the ranks are those of the partition's transitions. The paper writes ``p^a / sum p^a + beta``, which sums to
 ``1 + M * beta``; this is its normalised reading: ``beta`` is the share of samples drawn
 uniformly, ``alpha`` how sharply the rest favour large losses (alpha = 0 or beta = 1 is
 uniform replay; with alpha = 1 the largest loss is drawn twice as often as the average one,
@@ -30,8 +33,10 @@ Between refreshes:
 * transitions added since the refresh are tied at the top (their loss is unknown), above
   every ranked one, which is exactly eq. 12 while the buffer is not full;
 * losses written back since the refresh wait for the next one;
-* once the buffer is full, a slot overwritten since the refresh keeps its old rank's share
-  as well as its share of the top; :attr:`Sample.probabilities` is always the exact
+* once the buffer is full, the slots overwritten since the refresh no longer hold the
+  transitions that were ranked: a draw of the table that lands on one is redrawn among the
+  group's fresh transitions (among all of the group's, if it has no fresh one), so their
+  old share goes to the top too. :attr:`Sample.probabilities` is always the exact
   probability of the draw as made, so importance weights stay correct.
 """
 
@@ -43,7 +48,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from roverswarm.buffers.uniform import Buffer, BufferState, Sample, Transition, empty_state, gather, write
+from roverswarm.buffers.uniform import Buffer, BufferState, Sample, Transition, empty_state, gather, nth_stored, population, write
 
 LOSS_BINS = 2**14
 """float32 bit pattern >> 17: sign-free exponent and top 6 mantissa bits, 64 bins per octave."""
@@ -53,16 +58,18 @@ FAN_OUT = 32
 
 @struct.dataclass
 class RankState:
-    """Losses and the sampling table of the last refresh (per agent where [N, ...])."""
+    """Losses and the sampling tables of the last refresh, per sampling group where [G, ...]."""
 
-    loss: jax.Array  # [N, C] latest TD loss per slot; +inf until first sampled
-    slot_sums: jax.Array  # [N, C'] running sums of the ranked share P_rank(j) within each group of F slots
-    group_sums: jax.Array  # [N, C' / F] running sums of the groups' shares within each block of F groups
-    block_cdf: jax.Array  # [N, C' / F^2] running sums of the blocks' shares
+    loss: jax.Array  # [N, C] agent i's latest TD loss per slot; +inf until first sampled
+    slot_sums: jax.Array  # [G, C'] running sums of the ranked share P_rank(j) within each row of F slots
+    group_sums: jax.Array  # [G, C' / F] running sums of the rows' shares within each block of F rows
+    block_cdf: jax.Array  # [G, C' / F^2] running sums of the blocks' shares
     ranked_size: jax.Array  # [] int32, transitions stored at the last refresh
-    ranked_weight: jax.Array  # [N] sum of (rank / ranked_size)^alpha over them
+    ranked_weight: jax.Array  # [G] sum of (rank / ranked)^alpha over the ranked transitions
     fresh: jax.Array  # [] int32, transitions added since the last refresh (<= C)
     fresh_start: jax.Array  # [] int32, ring position at the last refresh (the first fresh slot)
+    group_ranked: jax.Array | None = None  # [G] int32, each partition's size at the last refresh (K > 1)
+    group_head: jax.Array | None = None  # [G] int32, each partition's ring head at the last refresh (K > 1)
 
 
 def loss_bins(loss: jax.Array) -> jax.Array:
@@ -83,11 +90,12 @@ def _padded(capacity: int) -> int:
     return -(-capacity // FAN_OUT**2) * FAN_OUT**2
 
 
-def _refresh_agent(loss: jax.Array, size: jax.Array, capacity: int, alpha: float):
-    """One agent's sampling table from its losses: (slot_sums, group_sums, block_cdf, total weight)."""
-    ranks = average_ranks(loss, jnp.arange(capacity) < size)
+def _refresh_group(loss: jax.Array, valid: jax.Array, capacity: int, alpha: float):
+    """One sampling group's table from the losses [C] of its ``valid`` slots:
+    (slot_sums, group_sums, block_cdf, total weight)."""
+    ranks = average_ranks(loss, valid)
     # eq. 12's numerator, scaled by the top rank so that the largest weight is 1 for any alpha
-    weights = jnp.where(ranks > 0, (ranks / jnp.maximum(size, 1)) ** alpha, 0.0)
+    weights = jnp.where(ranks > 0, (ranks / jnp.maximum(valid.sum(), 1)) ** alpha, 0.0)
     total = weights.sum()
     share = jnp.pad(weights / jnp.maximum(total, 1e-30), (0, _padded(capacity) - capacity))
     slot_sums = jnp.cumsum(share.reshape(-1, FAN_OUT), axis=1)
@@ -106,39 +114,62 @@ def _descend(sums: jax.Array, row: jax.Array, target: jax.Array) -> tuple[jax.Ar
     return j, target - before
 
 
-def _fresh_share(extra: RankState, capacity: int, alpha: float) -> jax.Array:
-    """[N] share of the ranked part that goes to the fresh transitions (tied at the top).
+def _prefix(slot_sums: jax.Array, group_sums: jax.Array, block_cdf: jax.Array, end: jax.Array) -> jax.Array:
+    """Sum of the table's shares of the slots before ``end`` (0 <= end <= C')."""
+    block, row, slot = end // FAN_OUT**2, (end // FAN_OUT) % FAN_OUT, end % FAN_OUT
+    blocks = jnp.where(block > 0, block_cdf[jnp.maximum(block - 1, 0)], 0.0)
+    rows = jnp.where(row > 0, group_sums[jnp.maximum(block * FAN_OUT + row - 1, 0)], 0.0)
+    slots = jnp.where(slot > 0, slot_sums[jnp.maximum((block * FAN_OUT + row) * FAN_OUT + slot - 1, 0)], 0.0)
+    return blocks + rows + slots
 
-    Their weight is ``n * (top / M_r)^alpha`` beside the ranked ones' ``sum (rank / M_r)^alpha``,
+
+def _region_share(slot_sums, group_sums, block_cdf, start: jax.Array, count: jax.Array, capacity: int) -> jax.Array:
+    """Sum of the table's shares over the ``count`` ring slots from ``start`` (wrapping at C)."""
+    prefix = functools.partial(_prefix, slot_sums, group_sums, block_cdf)
+    end = start + count
+    inside = prefix(jnp.minimum(end, capacity)) - prefix(start)
+    wrapped = jnp.where(end > capacity, prefix(jnp.maximum(end - capacity, 0)), 0.0)
+    return jnp.where(count >= capacity, 1.0, inside + wrapped)
+
+
+def _fresh_share(fresh: jax.Array, live: jax.Array, ranked: jax.Array, ranked_weight: jax.Array, alpha: float) -> jax.Array:
+    """[G] share of the ranked part that goes to the ``fresh`` transitions (tied at the top).
+
+    Their weight is ``n * (top / M_r)^alpha`` beside the ``ranked`` ones' ``sum (rank / M_r)^alpha``,
     compared in logs so that no alpha overflows."""
-    n = jnp.maximum(extra.fresh, 1).astype(jnp.float32)
-    ranked = jnp.maximum(extra.ranked_size, 1).astype(jnp.float32)
-    top = extra.ranked_size.astype(jnp.float32) + (n + 1.0) / 2.0
-    log_ratio = jnp.log(jnp.maximum(extra.ranked_weight, 1e-30)) - jnp.log(n) - alpha * jnp.log(top / ranked)
+    n = jnp.maximum(fresh, 1).astype(jnp.float32)
+    top = ranked.astype(jnp.float32) + (n + 1.0) / 2.0
+    log_ratio = jnp.log(jnp.maximum(ranked_weight, 1e-30)) - jnp.log(n) - alpha * jnp.log(top / jnp.maximum(ranked, 1))
     share = jax.nn.sigmoid(-log_ratio)
-    return jnp.where(extra.fresh == 0, 0.0, jnp.where(extra.fresh >= capacity, 1.0, share))
+    return jnp.where(fresh == 0, 0.0, jnp.where(fresh >= live, 1.0, share))
 
 
 @functools.lru_cache(maxsize=None)
-def ranked_buffer(capacity: int, batch_size: int, num_agents: int, alpha: float, beta: float) -> Buffer:
-    """The experience sample optimizer with amplification ``alpha`` and uniform share ``beta``.
+def ranked_buffer(capacity: int, batch_size: int, num_agents: int, alpha: float, beta: float, num_policies: int = 1) -> Buffer:
+    """The experience sample optimizer with amplification ``alpha`` and uniform share ``beta``,
+    for ``num_policies`` sub-policies per agent.
 
     Cached like :func:`~roverswarm.buffers.uniform.uniform_buffer`, so jitted code that takes
     it as a static argument compiles once per setting."""
     padded = _padded(capacity)
+    groups = num_agents * num_policies
+    partitioned = num_policies > 1
 
     def init(example: Transition) -> BufferState:
+        counts = lambda: jnp.zeros((groups,), jnp.int32) if partitioned else None  # noqa: E731
         extra = RankState(
             loss=jnp.full((num_agents, capacity), jnp.inf),
-            slot_sums=jnp.zeros((num_agents, padded)),
-            group_sums=jnp.zeros((num_agents, padded // FAN_OUT)),
-            block_cdf=jnp.zeros((num_agents, padded // FAN_OUT**2)),
+            slot_sums=jnp.zeros((groups, padded)),
+            group_sums=jnp.zeros((groups, padded // FAN_OUT)),
+            block_cdf=jnp.zeros((groups, padded // FAN_OUT**2)),
             ranked_size=jnp.zeros((), jnp.int32),
-            ranked_weight=jnp.zeros((num_agents,)),
+            ranked_weight=jnp.zeros((groups,)),
             fresh=jnp.zeros((), jnp.int32),
             fresh_start=jnp.zeros((), jnp.int32),
+            group_ranked=counts(),
+            group_head=counts(),
         )
-        return empty_state(capacity, example, extra)
+        return empty_state(capacity, example, num_policies, extra)
 
     def add(state: BufferState, transitions: Transition) -> BufferState:
         state, indices = write(state, transitions)
@@ -149,9 +180,18 @@ def ranked_buffer(capacity: int, batch_size: int, num_agents: int, alpha: float,
         )
         return state.replace(extra=extra)
 
-    def rerank(extra: RankState, size: jax.Array, position: jax.Array) -> RankState:
-        slot_sums, group_sums, block_cdf, total = jax.vmap(_refresh_agent, in_axes=(0, None, None, None))(
-            extra.loss, size, capacity, alpha
+    def group_losses(extra: RankState, size: jax.Array, policy: jax.Array | None) -> tuple[jax.Array, jax.Array]:
+        """[G, C] losses and valid slots of every sampling group (``policy`` [C, N] if K > 1)."""
+        stored = jnp.arange(capacity) < size
+        if not partitioned:
+            return extra.loss, jnp.broadcast_to(stored, (groups, capacity))
+        agent, sub_policy = jnp.divmod(jnp.arange(groups), num_policies)
+        return extra.loss[agent], (policy.T[agent] == sub_policy[:, None]) & stored
+
+    def rerank(extra: RankState, size: jax.Array, position: jax.Array, policy, parts) -> RankState:
+        loss, valid = group_losses(extra, size, policy)
+        slot_sums, group_sums, block_cdf, total = jax.vmap(_refresh_group, in_axes=(0, 0, None, None))(
+            loss, valid, capacity, alpha
         )
         return extra.replace(
             slot_sums=slot_sums,
@@ -161,11 +201,15 @@ def ranked_buffer(capacity: int, batch_size: int, num_agents: int, alpha: float,
             ranked_weight=total,
             fresh=jnp.zeros((), jnp.int32),
             fresh_start=position,
+            group_ranked=parts.live if partitioned else None,
+            group_head=parts.head if partitioned else None,
         )
 
     def refresh(state: BufferState, due: jax.Array) -> BufferState:
-        # only the rank state passes through the branch, so the replay data is never copied
-        extra = jax.lax.cond(due, rerank, lambda e, *_: e, state.extra, state.size, state.position)
+        # only the rank state and the sub-policies pass through the branch, so the replay
+        # data is never copied
+        keep = lambda extra, *_: extra  # noqa: E731
+        extra = jax.lax.cond(due, rerank, keep, state.extra, state.size, state.position, state.data.policy, state.partitions)
         return state.replace(extra=extra)
 
     def ranked_draw(slot_sums, group_sums, block_cdf, first: jax.Array, second: jax.Array) -> jax.Array:
@@ -180,39 +224,59 @@ def ranked_buffer(capacity: int, batch_size: int, num_agents: int, alpha: float,
         previous = jnp.where(index % FAN_OUT == 0, 0.0, slot_sums[jnp.maximum(index - 1, 0)])
         return slot_sums[index] - previous
 
-    def sample_agent(key, slot_sums, group_sums, block_cdf, fresh_share, size, fresh_count, fresh_start):
-        # two random words per draw: the first picks the part of P (uniform share, fresh top,
-        # ranked) and, rescaled, the ranked block; the second the slot: by its 32 bits for
-        # the uniform and fresh parts (a float32 uniform has too few values to spread over
-        # 1e6 slots evenly), as a fraction within the ranked block
-        k_pick, k_slot = jax.random.split(key)
+    def sample_group(state: BufferState, key, slot_sums, group_sums, block_cdf, fresh_share, live, fresh, ring, head):
+        # three random words per draw: the first picks the part of P (uniform share, fresh
+        # top, ranked) and, rescaled, the ranked block; the second the slot within the block;
+        # the third an age in the partition for the uniform and fresh parts and redraws (by
+        # its 32 bits: a float32 uniform has too few values to spread over 1e6 slots evenly)
+        k_pick, k_slot, k_age = jax.random.split(key, 3)
         pick = jax.random.uniform(k_pick, (batch_size,))
-        bits = jax.random.bits(k_slot, (batch_size,), jnp.uint32)
-        within = jax.lax.bitcast_convert_type((bits >> 9) | jnp.uint32(0x3F800000), jnp.float32) - 1.0
+        slot_bits = jax.random.bits(k_slot, (batch_size,), jnp.uint32)
+        within = jax.lax.bitcast_convert_type((slot_bits >> 9) | jnp.uint32(0x3F800000), jnp.float32) - 1.0
+        age_bits = jax.random.bits(k_age, (batch_size,), jnp.uint32)
+        stored = lambda count: nth_stored(state, (age_bits % jnp.maximum(count, 1).astype(jnp.uint32)).astype(jnp.int32), ring, head)  # noqa: E731
+        extra = state.extra
         top = beta + (1.0 - beta) * fresh_share  # [0, beta): uniform, [beta, top): fresh
-        fresh = jnp.maximum(fresh_count, 1)
-        uniform_index = (bits % jnp.maximum(size, 1).astype(jnp.uint32)).astype(jnp.int32)
-        fresh_index = (fresh_start + (bits % fresh.astype(jnp.uint32)).astype(jnp.int32)) % capacity
         rescaled = jnp.clip((pick - top) / jnp.maximum(1.0 - top, 1e-30), 0.0, 1.0)
         ranked_index = jnp.minimum(ranked_draw(slot_sums, group_sums, block_cdf, rescaled, within), capacity - 1)
-        index = jnp.where(pick < beta, uniform_index, jnp.where(pick < top, fresh_index, ranked_index))
-        # the exact probability of this draw (a mixture of the three ways to reach a slot)
-        is_fresh = ((index - fresh_start) % capacity) < fresh_count
-        rank_part = (1.0 - fresh_share) * snapshot_probability(slot_sums, index) + is_fresh * fresh_share / fresh
-        probability = beta / jnp.maximum(size, 1) + (1.0 - beta) * rank_part
+        overwritten = lambda index: ((index - extra.fresh_start) % capacity) < extra.fresh  # noqa: E731
+        # a table draw on a slot overwritten since the refresh is redrawn among the fresh ones
+        redraw = stored(jnp.where(fresh > 0, fresh, live))
+        ranked_index = jnp.where(overwritten(ranked_index), redraw, ranked_index)
+        index = jnp.where(pick < beta, stored(live), jnp.where(pick < top, stored(fresh), ranked_index))
+        # the exact probability of this draw (a mixture of the ways to reach a slot)
+        stale = _region_share(slot_sums, group_sums, block_cdf, extra.fresh_start, extra.fresh, capacity)
+        is_fresh = overwritten(index)
+        live_f, fresh_f = jnp.maximum(live, 1).astype(jnp.float32), jnp.maximum(fresh, 1).astype(jnp.float32)
+        to_fresh = jnp.where(fresh > 0, fresh_share + (1.0 - fresh_share) * stale, 0.0)
+        rank_part = (
+            (1.0 - fresh_share) * jnp.where(is_fresh, 0.0, snapshot_probability(slot_sums, index))
+            + is_fresh * to_fresh / fresh_f
+            + jnp.where(fresh > 0, 0.0, (1.0 - fresh_share) * stale) / live_f
+        )
+        probability = beta / live_f + (1.0 - beta) * rank_part
         return index, probability
 
     def sample(state: BufferState, key: jax.Array) -> Sample:
         extra = state.extra
-        shares = _fresh_share(extra, capacity, alpha)
-        indices, probabilities = jax.vmap(sample_agent, in_axes=(0, 0, 0, 0, 0, None, None, None))(
-            jax.random.split(key, num_agents), extra.slot_sums, extra.group_sums, extra.block_cdf, shares,
-            state.size, extra.fresh, extra.fresh_start,
+        live = population(state, num_agents * num_policies)
+        if partitioned:
+            ranked, ring, head = extra.group_ranked, state.partitions.ring, state.partitions.head
+            fresh = jnp.minimum(head - extra.group_head, live)
+        else:
+            ranked, ring, head = jnp.broadcast_to(extra.ranked_size, (groups,)), None, None
+            fresh = jnp.broadcast_to(extra.fresh, (groups,))
+        shares = _fresh_share(fresh, live, ranked, extra.ranked_weight, alpha)
+        indices, probabilities = jax.vmap(sample_group, in_axes=(None, 0, 0, 0, 0, 0, 0, 0, 0 if partitioned else None, 0 if partitioned else None))(
+            state, jax.random.split(key, groups), extra.slot_sums, extra.group_sums, extra.block_cdf, shares,
+            live, fresh, ring, head,
         )
-        return Sample(batch=gather(state, indices), indices=indices, probabilities=probabilities)
+        return Sample(batch=gather(state, indices), indices=indices, probabilities=probabilities, population=live)
 
     def set_priorities(state: BufferState, indices: jax.Array, losses: jax.Array) -> BufferState:
-        loss = jax.vmap(lambda l, i, v: l.at[i].set(v))(state.extra.loss, indices, losses)
+        """Write back the [G, B] losses: each group's go to its agent's row."""
+        agent = jnp.arange(groups) // num_policies
+        loss = state.extra.loss.at[agent[:, None], indices].set(losses)
         return state.replace(extra=state.extra.replace(loss=loss))
 
-    return Buffer(capacity, batch_size, num_agents, init, add, sample, set_priorities, refresh)
+    return Buffer(capacity, batch_size, num_agents, num_policies, init, add, sample, set_priorities, refresh)

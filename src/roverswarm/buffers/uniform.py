@@ -1,18 +1,22 @@
 """The replay buffer interface and its uniform implementation.
 
-Shape legend: C capacity (transitions), K transitions added at once, N agents, B batch size
-per agent, O observation size, A action size.
+Shape legend: C capacity (transitions), T transitions added at once, N agents, K sub-policies
+per agent (policy ensembles; 1 without), G = N * K sampling groups, B batch size per group,
+O observation size, A action size.
 
 A :class:`Buffer` is a frozen record of pure functions (Flashbax style)::
 
     init(example)                      -> BufferState   (example: one Transition, no batch axis)
-    add(state, transitions [K, ...])   -> BufferState   (a ring: the oldest are overwritten)
-    sample(state, key)                 -> Sample        (N independent batches of B, one per agent)
-    set_priorities(state, idx, losses) -> BufferState   (idx, losses [N, B]; no-op if uniform)
+    add(state, transitions [T, ...])   -> BufferState   (a ring: the oldest are overwritten)
+    sample(state, key)                 -> Sample        (G independent batches of B, one per group)
+    set_priorities(state, idx, losses) -> BufferState   (idx, losses [G, B]; no-op if uniform)
     refresh(state, due)                -> BufferState   (re-rank if ``due``; no-op if uniform)
 
 so the learner never knows which kind it has. Every agent draws its own batch, as in the
-reference MADDPG code; a batch holds all agents' data of the sampled transitions.
+reference MADDPG code; a batch holds all agents' data of the sampled transitions. With
+policy ensembles (``num_policies`` K > 1) every agent draws one batch per sub-policy, from
+that sub-policy's partition of the replay (:mod:`roverswarm.buffers.partitions`): group
+``g = i * K + k`` is agent i's sub-policy k. With K = 1 the groups are the agents.
 """
 
 from __future__ import annotations
@@ -25,6 +29,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from roverswarm.buffers.partitions import add_partitions, init_partitions, nth_newest
+
 
 @struct.dataclass
 class Transition:
@@ -35,6 +41,7 @@ class Transition:
     rewards: jax.Array  # [..., N]
     next_obs: jax.Array  # [..., N, O], the true next observation (before any reset)
     terminated: jax.Array  # [...] bool; a truncation is not a termination
+    policy: Any = None  # [..., N] int32 sub-policy each agent ran (policy ensembles only)
 
 
 @struct.dataclass
@@ -43,13 +50,15 @@ class BufferState:
     position: jax.Array  # [] int32, where the next transition goes
     size: jax.Array  # [] int32, transitions stored (<= C)
     extra: Any = None  # implementation state (priorities of the ranked buffer)
+    partitions: Any = None  # Partitions of the policy ensembles' groups (K > 1 only)
 
 
 @struct.dataclass
 class Sample:
-    batch: Transition  # [N, B, ...]: agent i's batch at [i]
-    indices: jax.Array  # [N, B] int32
-    probabilities: jax.Array  # [N, B], probability of drawing each index
+    batch: Transition  # [G, B, ...]: group g's batch at [g]
+    indices: jax.Array  # [G, B] int32
+    probabilities: jax.Array  # [G, B], probability of drawing each index
+    population: jax.Array  # [G] int32, transitions each group draws from (M)
 
 
 @dataclass(frozen=True)
@@ -59,6 +68,7 @@ class Buffer:
     capacity: int
     batch_size: int
     num_agents: int
+    num_policies: int
     init: Callable[[Transition], BufferState]
     add: Callable[[BufferState, Transition], BufferState]
     sample: Callable[[BufferState, jax.Array], Sample]
@@ -66,26 +76,51 @@ class Buffer:
     refresh: Callable[[BufferState, jax.Array], BufferState]
 
 
-def empty_state(capacity: int, example: Transition, extra: Any = None) -> BufferState:
-    """A buffer of ``capacity`` zeroed transitions shaped like ``example``."""
+def empty_state(capacity: int, example: Transition, num_policies: int, extra: Any = None) -> BufferState:
+    """A buffer of ``capacity`` zeroed transitions shaped like ``example``, with partitions
+    for ``num_policies`` > 1 sub-policies per agent (``example.policy`` then required)."""
     data = jax.tree.map(lambda x: jnp.zeros((capacity, *jnp.shape(x)), jnp.asarray(x).dtype), example)
-    return BufferState(data=data, position=jnp.zeros((), jnp.int32), size=jnp.zeros((), jnp.int32), extra=extra)
+    parts = None
+    if num_policies > 1:
+        parts = init_partitions(jnp.shape(example.policy)[-1] * num_policies, capacity)
+    counter = lambda: jnp.zeros((), jnp.int32)  # noqa: E731 (separate arrays: donated state)
+    return BufferState(data=data, position=counter(), size=counter(), extra=extra, partitions=parts)
 
 
 def write(state: BufferState, transitions: Transition) -> tuple[BufferState, jax.Array]:
-    """Store ``transitions`` [K, ...] at the ring position; returns the state and the K indices."""
+    """Store ``transitions`` [T, ...] at the ring position; returns the state and the T indices."""
     capacity = jax.tree.leaves(state.data)[0].shape[0]
     count = jax.tree.leaves(transitions)[0].shape[0]
     indices = (state.position + jnp.arange(count)) % capacity
+    parts = state.partitions
+    if parts is not None:
+        num_policies = parts.ring.shape[0] // transitions.policy.shape[-1]
+        parts = add_partitions(parts, indices, transitions.policy, state.data.policy[indices], indices < state.size, num_policies)
     data = jax.tree.map(lambda d, x: d.at[indices].set(x), state.data, transitions)
     return (
         state.replace(
             data=data,
             position=(state.position + count) % capacity,
             size=jnp.minimum(state.size + count, capacity),
+            partitions=parts,
         ),
         indices,
     )
+
+
+def population(state: BufferState, num_agents: int) -> jax.Array:
+    """[G] transitions each group draws from: its partition, or the whole replay (K = 1)."""
+    if state.partitions is None:
+        return jnp.broadcast_to(state.size, (num_agents,))
+    return state.partitions.live
+
+
+def nth_stored(state: BufferState, age: jax.Array, ring: jax.Array | None = None, head: jax.Array | None = None) -> jax.Array:
+    """Slot of the stored transition of age ``age`` (0 = newest): of one group (its ``ring``
+    and ``head``, K > 1), or of the whole replay."""
+    if ring is None:
+        return (state.position - 1 - age) % jax.tree.leaves(state.data)[0].shape[0]
+    return nth_newest(ring, head, age)
 
 
 def gather(state: BufferState, indices: jax.Array) -> Transition:
@@ -93,38 +128,43 @@ def gather(state: BufferState, indices: jax.Array) -> Transition:
     return jax.tree.map(lambda d: d[indices], state.data)
 
 
-def importance_weights(sample: Sample, size: jax.Array) -> jax.Array:
-    """[N, B] importance-sampling weights ``1 / (M * P(i))``, divided by each batch's maximum."""
-    weights = 1.0 / (jnp.maximum(size, 1) * sample.probabilities)
+def importance_weights(sample: Sample) -> jax.Array:
+    """[G, B] importance-sampling weights ``1 / (M * P(i))``, divided by each batch's maximum."""
+    weights = 1.0 / (jnp.maximum(sample.population, 1)[:, None] * sample.probabilities)
     return weights / weights.max(axis=-1, keepdims=True)
 
 
 def newest_fraction(state: BufferState, indices: jax.Array, share: float) -> jax.Array:
-    """[N] fraction of each agent's sampled ``indices`` among the newest ``share`` of the replay."""
+    """[G] fraction of each group's sampled ``indices`` among the newest ``share`` of the replay."""
     capacity = jax.tree.leaves(state.data)[0].shape[0]
     age = (state.position - 1 - indices) % capacity  # 0 = the newest transition
     return (age < jnp.ceil(share * state.size)).mean(axis=-1)
 
 
 @functools.lru_cache(maxsize=None)
-def uniform_buffer(capacity: int, batch_size: int, num_agents: int) -> Buffer:
-    """The reference MADDPG replay: every stored transition equally likely.
+def uniform_buffer(capacity: int, batch_size: int, num_agents: int, num_policies: int = 1) -> Buffer:
+    """The reference MADDPG replay: every stored transition of a group's partition equally likely.
 
     Cached, so equal arguments give the same (hashable) record and jitted code that takes
     it as a static argument compiles once."""
 
     def init(example: Transition) -> BufferState:
-        return empty_state(capacity, example)
+        return empty_state(capacity, example, num_policies)
 
     def add(state: BufferState, transitions: Transition) -> BufferState:
         return write(state, transitions)[0]
 
     def sample(state: BufferState, key: jax.Array) -> Sample:
-        indices = jax.random.randint(key, (num_agents, batch_size), 0, jnp.maximum(state.size, 1))
-        probabilities = jnp.full(indices.shape, 1.0) / jnp.maximum(state.size, 1)
-        return Sample(batch=gather(state, indices), indices=indices, probabilities=probabilities)
+        counts = population(state, num_agents)
+        if state.partitions is None:
+            indices = jax.random.randint(key, (num_agents, batch_size), 0, jnp.maximum(state.size, 1))
+        else:
+            ages = jax.random.randint(key, (len(counts), batch_size), 0, jnp.maximum(counts, 1)[:, None])
+            indices = jax.vmap(nth_newest)(state.partitions.ring, state.partitions.head, ages)
+        probabilities = jnp.ones(indices.shape) / jnp.maximum(counts, 1)[:, None]
+        return Sample(batch=gather(state, indices), indices=indices, probabilities=probabilities, population=counts)
 
     def unchanged(state: BufferState, *_) -> BufferState:
         return state
 
-    return Buffer(capacity, batch_size, num_agents, init, add, sample, unchanged, unchanged)
+    return Buffer(capacity, batch_size, num_agents, num_policies, init, add, sample, unchanged, unchanged)
