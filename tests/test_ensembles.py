@@ -1,0 +1,235 @@
+"""Policy ensembles and inferred policies outside the update (which ``test_maddpg_update``
+checks against its reference): the replay partitions D_i^(k) against a slow NumPy scan of the
+stored sub-policies, for the uniform and the ranked replay (eq. 12-13 within a partition);
+training, resume and evaluation with both options; bad input."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import stats
+
+from roverswarm.buffers.ranked import ranked_buffer
+from roverswarm.buffers.uniform import Transition, importance_weights, uniform_buffer
+from roverswarm.cli import main
+from roverswarm.errors import RunStopped
+from roverswarm.evaluate import evaluate_run
+from roverswarm.train import train
+
+N, K = 2, 3  # agents, sub-policies per agent: G = 6 sampling groups
+DRAWS = 300
+
+
+def transitions(first: int, policy: np.ndarray) -> Transition:
+    """len(policy) transitions numbered from ``first`` (in obs), agent sub-policies ``policy`` [T, N]."""
+    count = len(policy)
+    number = jnp.arange(first, first + count, dtype=jnp.float32)
+    return Transition(
+        obs=jnp.broadcast_to(number[:, None, None], (count, N, 1)),
+        actions=jnp.zeros((count, N, 2)),
+        rewards=jnp.zeros((count, N)),
+        next_obs=jnp.zeros((count, N, 1)),
+        terminated=jnp.zeros(count, bool),
+        policy=jnp.asarray(policy, jnp.int32),
+    )
+
+
+def fill(buffer, rng, total: int, chunk: int):
+    """Add ``total`` transitions in chunks with random sub-policies; returns the state and the
+    sub-policies of every transition ever added [total, N] (transition t holds number t)."""
+    policies = rng.integers(0, K, (total, N))
+    state = buffer.init(jax.tree.map(lambda x: x[0], transitions(0, policies[:1])))
+    add = jax.jit(buffer.add)
+    for start in range(0, total, chunk):
+        state = add(state, transitions(start, policies[start : start + chunk]))
+    return state, policies
+
+
+def members(policies: np.ndarray, capacity: int, group: int) -> np.ndarray:
+    """Slow scan: the numbers of the stored transitions (the newest ``capacity``) in ``group``'s partition."""
+    stored = np.arange(max(0, len(policies) - capacity), len(policies))
+    return stored[policies[stored, group // K] == group % K]
+
+
+def draw(buffer, state, seed: int = 0):
+    """DRAWS batches: the transition numbers drawn and their probabilities [DRAWS, G, B]."""
+
+    @jax.jit
+    def many(state, key):
+        def one(_, k):
+            sample = buffer.sample(state, k)
+            return None, (sample.batch.obs[..., 0, 0], sample.probabilities, sample.population)
+
+        return jax.lax.scan(one, None, jax.random.split(key, DRAWS))[1]
+
+    numbers, probabilities, population = jax.device_get(many(state, jax.random.PRNGKey(seed)))
+    return numbers.astype(int), probabilities, population[0]
+
+
+@pytest.mark.parametrize("total", [700, 2300], ids=["filling", "overwritten"])
+def test_uniform_partitions_draw_only_their_members_uniformly(total):
+    capacity = 1000
+    buffer = uniform_buffer(capacity, 64, N, K)
+    state, policies = fill(buffer, np.random.default_rng(0), total, 100)
+    numbers, probabilities, population = draw(buffer, state)
+    for g in range(N * K):
+        mine = members(policies, capacity, g)
+        assert population[g] == len(mine)
+        assert np.isin(numbers[:, g], mine).all(), f"group {g} drew outside its partition"
+        counts = np.array([np.sum(numbers[:, g] == m) for m in mine])
+        assert stats.chisquare(counts).pvalue > 1e-3
+        np.testing.assert_allclose(probabilities[:, g], 1.0 / len(mine))
+
+
+def reference_probabilities(losses: np.ndarray, alpha: float, beta: float) -> np.ndarray:
+    """Eq. 12-13 over one partition's losses (ties: average rank; +inf: a new transition)."""
+    powered = stats.rankdata(losses, method="average").astype(np.float64) ** alpha
+    return (1.0 - beta) * powered / powered.sum() + beta / len(losses)
+
+
+def test_ranked_partitions_follow_eq_12_13_within_each_partition():
+    """Losses written back for every stored transition, then a re-ranking, then fresh ones:
+    each group's draws follow the formula over its own partition's ranks."""
+    capacity, alpha, beta = 1000, 2.0, 0.1
+    buffer = ranked_buffer(capacity, 256, N, alpha, beta, K)
+    rng = np.random.default_rng(1)
+    state, policies = fill(buffer, rng, 600, 100)
+    losses = np.stack([rng.permutation(np.geomspace(1e-20, 1e20, 600)) for _ in range(N)])  # [N, slots]
+    agent = np.arange(N * K) // K
+    slots = jnp.asarray(np.broadcast_to(np.arange(600), (N * K, 600)))
+    state = buffer.set_priorities(state, slots, jnp.asarray(losses[agent], jnp.float32))
+    state = buffer.refresh(state, jnp.bool_(True))
+    fresh = rng.integers(0, K, (50, N))
+    state = buffer.add(state, transitions(600, fresh))
+    policies = np.concatenate([policies, fresh])
+    numbers, probabilities, _ = draw(buffer, state)
+    now = np.concatenate([losses, np.full((N, 50), np.inf)], axis=1)
+    for g in range(N * K):
+        mine = members(policies, capacity, g)
+        expected = reference_probabilities(now[g // K, mine], alpha, beta)
+        assert np.isin(numbers[:, g], mine).all()
+        counts = np.array([np.sum(numbers[:, g] == m) for m in mine])
+        assert stats.chisquare(counts, expected * counts.sum()).pvalue > 1e-3
+        lookup = dict(zip(mine, expected))
+        np.testing.assert_allclose(probabilities[:, g].ravel(), [lookup[n] for n in numbers[:, g].ravel()], rtol=1e-4)
+
+
+@pytest.mark.parametrize("num_policies", [1, K], ids=["plain", "ensemble"])
+def test_ranked_draws_after_overwrites_report_their_probabilities(num_policies):
+    """A full buffer whose oldest slots were overwritten since the re-ranking: every draw
+    comes from the group's live partition, and the draws follow the probabilities reported
+    (the exact probability of the draw as made, which importance weights rely on)."""
+    capacity = 500
+    buffer = ranked_buffer(capacity, 256, N, 1.5, 0.2, num_policies)
+    rng = np.random.default_rng(2)
+    policies = rng.integers(0, num_policies, (700, N))
+    state = buffer.init(jax.tree.map(lambda x: x[0], transitions(0, policies[:1])))
+    state = buffer.add(state, transitions(0, policies[:500]))
+    groups = N * num_policies
+    losses = rng.permutation(np.geomspace(1e-10, 1e10, 500))
+    slots = jnp.asarray(np.broadcast_to(np.arange(500), (groups, 500)))
+    state = buffer.set_priorities(state, slots, jnp.asarray(np.broadcast_to(losses, (groups, 500)), jnp.float32))
+    state = buffer.refresh(state, jnp.bool_(True))
+    state = buffer.add(state, transitions(500, policies[500:]))  # overwrites the 200 oldest
+    numbers, probabilities, _ = draw(buffer, state)
+    for g in range(groups):
+        mine = members(policies, capacity, g) if num_policies > 1 else np.arange(200, 700)
+        assert np.isin(numbers[:, g], mine).all()
+        reported = {}
+        for n, p in zip(numbers[:, g].ravel(), probabilities[:, g].ravel()):
+            reported.setdefault(n, p)
+            assert p == pytest.approx(reported[n], rel=1e-5), "one transition, two probabilities"
+        unseen = 1.0 - sum(reported.values())
+        assert unseen >= -1e-4, "the reported probabilities sum to more than one"
+        counts = np.array([np.sum(numbers[:, g] == n) for n in reported])
+        expected = np.array(list(reported.values()), np.float64)
+        if unseen > 1e-6:  # transitions never drawn: one bin of count 0
+            counts, expected = np.append(counts, 0), np.append(expected, unseen)
+        assert stats.chisquare(counts, expected / expected.sum() * counts.sum()).pvalue > 1e-3
+    weights = importance_weights(buffer.sample(state, jax.random.PRNGKey(3)))
+    assert np.asarray(weights).max() == pytest.approx(1.0)
+
+
+@pytest.fixture(scope="module")
+def ensemble_run(tiny_config, tmp_path_factory):
+    """A tiny run with two sub-policies per agent, inferred policies and the ranked replay."""
+    config = dataclasses.replace(
+        tiny_config, replay="ranked", refresh_every=10,
+        learner=dataclasses.replace(tiny_config.learner, ensemble=2, infer_policies=True),
+    )
+    out = tmp_path_factory.mktemp("ensemble")
+    return train(config, out=out, progress=False)
+
+
+def test_sub_policies_learn_apart(ensemble_run):
+    actor = jax.tree.leaves(ensemble_run.learner.actor)[0]  # [S, N * K, ...]
+    assert actor.shape[1] == 2 * 2
+    assert not np.allclose(actor[:, 0], actor[:, 1]), "an agent's two sub-policies are the same network"
+    assert not np.allclose(actor[:, 0], actor[:, 2]), "two agents' first sub-policies are the same network"
+
+
+def test_the_inferred_policies_learn_the_other_agents(tiny_config):
+    """The approximations' loss (negative log-likelihood of the others' replayed actions minus
+    the entropy bonus) falls to well under half of what the first updates see, for every seed;
+    the error against the others' current actions is logged and finite."""
+    config = dataclasses.replace(tiny_config, update_every=5, learner=dataclasses.replace(tiny_config.learner, infer_policies=True))
+    result = train(config, progress=False)
+    for seed in range(config.seeds):
+        rows = [r for r in result.metrics if r["seed"] == seed and r["critic_loss"] > 0]
+        assert len(rows) >= 3 and all(np.isfinite(r["infer_error"]) and r["infer_error"] > 0 for r in rows)
+        assert rows[-1]["infer_loss"] < 0.5 * rows[0]["infer_loss"], [r["infer_loss"] for r in rows]
+
+
+def test_ensemble_run_resumes_to_the_same_numbers(ensemble_run, tmp_path, monkeypatch):
+    """Ctrl-C mid-run (partitions, sub-policies, approximations and ranks checkpointed), resume."""
+    import roverswarm.train as train_module
+
+    real = train_module.run_chunk
+    calls = []
+
+    def interrupted(*args):
+        calls.append(1)
+        if len(calls) == 2:
+            os.kill(os.getpid(), signal.SIGINT)
+        return real(*args)
+
+    monkeypatch.setattr(train_module, "run_chunk", interrupted)
+    with pytest.raises(RunStopped, match="interrupted at episode 200"):
+        train(ensemble_run.config, out=tmp_path, progress=False)
+    monkeypatch.setattr(train_module, "run_chunk", real)
+    resumed = train(ensemble_run.config, out=tmp_path, resume=True, progress=False)
+    strip = lambda rows: [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rows]  # noqa: E731
+    assert strip(resumed.metrics) == strip(ensemble_run.metrics)
+
+
+def test_evaluation_runs_random_draws_or_each_sub_policy(ensemble_run, capsys):
+    drawn = evaluate_run(ensemble_run.out, episodes=40)
+    assert [r["policy"] for r in drawn][2:] == ["maddpg seed 0, random sub-policies", "maddpg seed 1, random sub-policies"]
+    each = evaluate_run(ensemble_run.out, episodes=40, sub_policies="each")
+    names = [r["policy"] for r in each][2:]
+    assert names == [f"maddpg seed {s}, sub-policy {k}" for s in range(2) for k in range(2)]
+    rewards = {r["policy"]: r["episode_reward"] for r in each}
+    assert rewards["maddpg seed 0, sub-policy 0"] != rewards["maddpg seed 0, sub-policy 1"]
+    assert main(["evaluate", str(ensemble_run.out), "--episodes", "40", "--sub-policies", "each"]) == 0
+    assert "sub-policy 1" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--ensemble", "0"], "--ensemble must be >= 1 (sub-policies per agent), got 0"),
+        (["--infer-policies", "--infer-entropy", "-0.1"], "--infer-entropy must be >= 0, got -0.1"),
+        (["--algo", "ddpg", "--infer-policies"], "--infer-policies needs --algo maddpg"),
+    ],
+)
+def test_bad_ensemble_or_inference_input_is_one_line_and_exit_2(argv, message, capsys, tmp_path):
+    assert main(["train", *argv, "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1
+
