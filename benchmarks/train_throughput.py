@@ -17,7 +17,14 @@ on batches of 1024, 2x64 networks), one seed, 20 parallel environments, replay 1
   per 1000 episodes for N = 3 on this machine (one environment, one update per 100 steps,
   the reference preset); the ratio 90 / ours for N = 3 and that preset. Target >= 10x.
 
-Run ``python benchmarks/train_throughput.py`` (``--quick``: N = 3 only).
+A second table gives the cost of the rest of the paper's MADDPG, at the default preset,
+with uniform replay, relative to plain MADDPG in the same run (chunks alternate):
+``--ensemble 3`` (three sub-policies per agent: three actor steps and a critic step on three
+batches per update) and ``--infer-policies`` (each agent fits the others' policies before
+each critic step).
+
+Run ``python benchmarks/train_throughput.py`` (``--quick``: N = 3 only; ``--only main`` or
+``--only extensions`` for one table).
 """
 
 from __future__ import annotations
@@ -95,11 +102,19 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="N = 3 only")
     parser.add_argument("--rovers", type=int, nargs="+", default=[2, 3, 4, 5], help="swarm sizes N to measure")
     parser.add_argument("--chunks", type=int, default=3, help="timed chunks per configuration")
+    parser.add_argument("--only", choices=["main", "extensions"], help="print one of the two tables")
     args = parser.parse_args()
     enable_compilation_cache()
     rover_counts = (3,) if args.quick else tuple(args.rovers)
     chunks = args.chunks
     print(f"jax {jax.__version__} | {jax.devices()[0]} | 1 seed, 20 envs, replay 1e6\n")
+    if args.only != "extensions":
+        main_table(rover_counts, chunks)
+    if args.only != "main":
+        extensions_table(rover_counts, chunks)
+
+
+def main_table(rover_counts: tuple[int, ...], chunks: int) -> None:
     print("| N | algo | preset | s/1000 ep | update (ms) | updates/1000 ep | overhead | ranked s/1000 ep | ranked vs uniform | vs reference |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for n in rover_counts:
@@ -117,6 +132,17 @@ def main() -> None:
                     f"| {ranked / chunk - 1:+.1%} | {versus} |",
                     flush=True,
                 )
+
+
+def extensions_table(rover_counts: tuple[int, ...], chunks: int) -> None:
+    print("\n| N | plain MADDPG s/1000 ep | --ensemble 3 | vs plain | --infer-policies | vs plain |")
+    print("|---|---|---|---|---|---|")
+    for n in rover_counts:
+        plain = dataclasses.replace(PRESETS["default"], scenario=f"paper-{n}")
+        options = [dict(ensemble=3), dict(infer_policies=True)]
+        configs = [plain] + [dataclasses.replace(plain, learner=dataclasses.replace(plain.learner, **o)) for o in options]
+        base, ensemble, infer = chunk_seconds(configs, chunks)
+        print(f"| {n} | {base:.2f} | {ensemble:.2f} | {ensemble / base:.2f}x | {infer:.2f} | {infer / base:.2f}x |", flush=True)
 
 
 if __name__ == "__main__":

@@ -259,7 +259,7 @@ def ranked_buffer(capacity: int, batch_size: int, num_agents: int, alpha: float,
 
     def sample(state: BufferState, key: jax.Array) -> Sample:
         extra = state.extra
-        live = population(state, num_agents * num_policies)
+        live = population(state, groups)
         if partitioned:
             ranked, ring, head = extra.group_ranked, state.partitions.ring, state.partitions.head
             fresh = jnp.minimum(head - extra.group_head, live)

@@ -108,10 +108,10 @@ def write(state: BufferState, transitions: Transition) -> tuple[BufferState, jax
     )
 
 
-def population(state: BufferState, num_agents: int) -> jax.Array:
-    """[G] transitions each group draws from: its partition, or the whole replay (K = 1)."""
+def population(state: BufferState, groups: int) -> jax.Array:
+    """[G] transitions each of the ``groups`` draws from: its partition, or the whole replay (K = 1)."""
     if state.partitions is None:
-        return jnp.broadcast_to(state.size, (num_agents,))
+        return jnp.broadcast_to(state.size, (groups,))
     return state.partitions.live
 
 
@@ -155,7 +155,7 @@ def uniform_buffer(capacity: int, batch_size: int, num_agents: int, num_policies
         return write(state, transitions)[0]
 
     def sample(state: BufferState, key: jax.Array) -> Sample:
-        counts = population(state, num_agents)
+        counts = population(state, num_agents * num_policies)
         if state.partitions is None:
             indices = jax.random.randint(key, (num_agents, batch_size), 0, jnp.maximum(state.size, 1))
         else:
