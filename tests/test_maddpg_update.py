@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from roverswarm.algos.maddpg import AlgoConfig, init_learner, update
+from roverswarm.algos.maddpg import AlgoConfig, inference_error, init_learner, update
 from roverswarm.buffers.uniform import Transition
 
 N, O, A, B = 3, 20, 2, 32
@@ -285,13 +285,15 @@ def test_the_target_actions_are_caught(case, variant):
 def test_inferred_policy_loss_and_error_match_reference(case):
     cfg, state, batch, _, new_state, info, ref = case
     if not cfg.infer_policies:
-        assert "infer_loss" not in info and "infer_error" not in info
+        assert "infer_loss" not in info
         return
     np.testing.assert_allclose(info["infer_loss"], ref["infer_loss"], **TOL)
     for i in range(N):  # an agent's approximation of itself never moves
         mine = jax.tree.map(lambda new, old: np.abs(new[i, i] - old[i, i]).max(), new_state.approx, state.approx)
         assert max(jax.tree.leaves(mine)) == 0.0
-    # the error is against the others' current deterministic actions (the sub-policy they ran)
+    # the logged error (outside the update): the approximations against the others' current
+    # deterministic actions, of the sub-policy they ran
+    logged = inference_error(cfg, state, batch)
     K = cfg.ensemble
     for i in range(N):
         obs = jnp.concatenate([batch.obs[i * K + k] for k in range(K)])
@@ -302,6 +304,18 @@ def test_inferred_policy_loss_and_error_match_reference(case):
                 continue
             every = [actor(jax.tree.map(lambda x: x[j * K + k], state.actor), obs[:, j])[0] for k in range(K)]
             true = sum(jnp.where((policy[:, j] == k)[:, None], every[k], 0.0) for k in range(K))
-            mean = gaussian(jax.tree.map(lambda x: x[i, j], ref["approx"]), obs[:, j])[0]
+            mean = gaussian(jax.tree.map(lambda x: x[i, j], state.approx), obs[:, j])[0]
             errors.append(jnp.abs(mean - true).mean())
-        np.testing.assert_allclose(info["infer_error"][i], np.mean(errors), **TOL)
+        np.testing.assert_allclose(logged[i], np.mean(errors), **TOL)
+
+
+def test_an_empty_partition_leaves_its_sub_policy_alone(case):
+    """Zero weights for a group (its partition is empty) leave that sub-policy's actor as it was."""
+    cfg, state, batch, weights, *_ = case
+    if cfg.ensemble == 1:
+        pytest.skip("no partitions")
+    zeroed = (jnp.ones((N * cfg.ensemble, B)) if weights is None else weights).at[1].set(0.0)
+    new_state, _ = jax.jit(update, static_argnums=0)(cfg, state, batch, zeroed)
+    still = jax.tree.map(lambda new, old: np.abs(new[1] - old[1]).max(), new_state.actor, state.actor)
+    moved = jax.tree.map(lambda new, old: np.abs(new[0] - old[0]).max(), new_state.actor, state.actor)
+    assert max(jax.tree.leaves(still)) == 0.0 and max(jax.tree.leaves(moved)) > 1e-4

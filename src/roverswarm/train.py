@@ -34,7 +34,7 @@ from flax import serialization, struct
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from tensorboardX import SummaryWriter
 
-from roverswarm.algos.maddpg import ALGOS, AlgoConfig, LearnerState, act, init_learner, update
+from roverswarm.algos.maddpg import ALGOS, AlgoConfig, LearnerState, act, inference_error, init_learner, update
 from roverswarm.buffers.ranked import ranked_buffer
 from roverswarm.buffers.uniform import Buffer, BufferState, Transition, importance_weights, newest_fraction, uniform_buffer
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, reset, step_env
@@ -157,6 +157,11 @@ def validate(config: TrainConfig) -> EnvParams:
         not learner.infer_policies or learner.algo == "maddpg",
         "--infer-policies needs --algo maddpg: a DDPG critic never sees the other agents' actions",
     )
+    require(not learner.infer_policies or params.num_rovers >= 2, "--infer-policies needs at least 2 rovers: there is no other agent to infer")
+    require(
+        config.buffer_size >= steps,
+        f"--buffer-size ({config.buffer_size}) must hold one iteration's transitions (--num-envs x episode length = {steps})",
+    )
     require(0 <= learner.gamma <= 1, f"--gamma must be in [0, 1], got {learner.gamma}")
     for name in ("noise_std", "noise_final", "noise_decay_episodes"):
         value = getattr(config, name)
@@ -257,11 +262,17 @@ def collect(config: TrainConfig, params: EnvParams, actor, key: jax.Array, noise
 def learn(config: TrainConfig, buffer: Buffer, learner: LearnerState, buffer_state: BufferState, key: jax.Array):
     """One update of every agent of one seed from its replay; the sampled TD losses go back to it.
 
-    Info [N] per agent: the update's losses and Q, and what was sampled (its mean and max TD
-    loss, and the fraction drawn from the newest 10% of the replay)."""
+    Info per agent [N] (the update's losses and Q; with --infer-policies the approximations'
+    error before the update) or per sampling group [N * K] (what was sampled: its mean and
+    max TD loss, and the fraction drawn from the newest 10% of the replay). A group with an
+    empty partition gets zero weights, so it changes nothing."""
     sample = buffer.sample(buffer_state, key)
-    weights = importance_weights(sample) if config.importance_weights else None
+    weights = importance_weights(sample) if config.importance_weights else jnp.ones(sample.probabilities.shape)
+    weights = weights * (sample.population > 0)[:, None]
+    error = inference_error(config.learner, learner, sample.batch) if config.learner.infer_policies else None
     learner, info = update(config.learner, learner, sample.batch, weights)
+    if error is not None:
+        info["infer_error"] = error
     td_loss = info.pop("td_loss")
     buffer_state = buffer.set_priorities(buffer_state, sample.indices, td_loss)
     info.update(

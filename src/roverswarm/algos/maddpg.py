@@ -1,7 +1,8 @@
 """MADDPG (paper eq. 4-6) and DDPG: one update, the critic's view is the only difference.
 
 Shape legend
-    N  agents (rovers), B  batch size, O  observation size, A  action size (2),
+    N  agents (rovers), K  sub-policies per agent (1 without ensembles), B  batch size,
+    O  observation size, A  action size (2),
     D  critic input size: N * (O + A) for MADDPG (all observations and actions),
        O + A for DDPG (the agent's own).
 
@@ -18,7 +19,7 @@ where the other agents' actions in the actor step come from the replay, the acto
 the freshly updated critic, and ``pre_i`` is the actor's pre-tanh output (the reference
 code's 1e-3 action regulariser). Gradients are clipped to a global norm per network. All
 agents update at once: parameters are stacked on a leading agent axis and the per-agent
-update is vmapped.
+update is vmapped (actors on a leading [N * K] axis, see below).
 
 Policy ensembles (eq. 9-11, ``ensemble`` K > 1): agent i has K sub-policies mu_i^(k) (actors
 stacked agent-major on one [N * K] axis: sub-policy k of agent i at i * K + k). Each stored
@@ -37,8 +38,11 @@ then uses the approximations' means for the other agents,
 
     y = r_i + gamma * (1 - terminated) * Q'_i(x', mu_hat_i^1(o'_1), .., mu'_i(o'_i), .., mu_hat_i^N(o'_N))
 
-so it never reads the other agents' true policies. (The true policies are read only to
-log how far the approximations are from them.)
+so it never reads the other agents' true policies (:func:`inference_error`, outside the
+update, reads them to log how far the approximations are).
+
+A group whose batch weights are all zero (an empty partition, before its sub-policy was
+ever drawn) leaves its sub-policy's actor alone.
 """
 
 from __future__ import annotations
@@ -93,7 +97,8 @@ class AlgoConfig:
 
 @struct.dataclass
 class LearnerState:
-    """Every agent's networks, targets and optimiser states, stacked on a leading [N] axis."""
+    """Every agent's networks, targets and optimiser states, stacked on a leading agent axis
+    ([N * K] for the actors: sub-policy k of agent i at i * K + k)."""
 
     actor: Any  # [N * K, ...]: sub-policy k of agent i at i * K + k
     critic: Any  # [N, ...]
@@ -175,12 +180,11 @@ def approx_actions(config: AlgoConfig, approx, obs: jax.Array) -> tuple[jax.Arra
     return jax.vmap(approximation(config).apply, in_axes=(0, -2), out_axes=-2)(approx, obs)
 
 
-def _infer(config: AlgoConfig, approx, approx_opt, agent: jax.Array, batch: Transition, true_actions: jax.Array):
+def _infer(config: AlgoConfig, approx, approx_opt, agent: jax.Array, batch: Transition):
     """Agent ``agent``'s step on its approximations of the other agents' policies (eq. 7):
-    minimise -log N(a_j | mean_j(o_j), std_j) - lambda * entropy_j, summed over j != agent.
+    minimise -log N(a_j | mean_j(o_j), std_j) - lambda * entropy_j, for every j != agent.
 
-    Returns the new approximations, their optimiser state and the mean absolute error of
-    their means against ``true_actions`` [B, N, A] (the others' current deterministic actions)."""
+    Returns the new approximations, their optimiser state and the mean loss over the others."""
     optimizer = optimizers(config)[0]
     others = (jnp.arange(batch.actions.shape[-2]) != agent).astype(jnp.float32)
 
@@ -194,9 +198,30 @@ def _infer(config: AlgoConfig, approx, approx_opt, agent: jax.Array, batch: Tran
     grads = jax.tree.map(lambda g: g * others.reshape(-1, *([1] * (g.ndim - 1))), grads)  # its own: unused, left alone
     updates, approx_opt = jax.vmap(optimizer.update)(grads, approx_opt, approx)
     approx = optax.apply_updates(approx, updates)
-    error = jnp.abs(approx_actions(config, approx, batch.obs)[0] - true_actions).mean(axis=(0, 2))  # [N]
-    info = {"infer_loss": (losses * others).sum() / others.sum(), "infer_error": (error * others).sum() / others.sum()}
-    return approx, approx_opt, info
+    return approx, approx_opt, (losses * others).sum() / jnp.maximum(others.sum(), 1.0)
+
+
+def inference_error(config: AlgoConfig, state: LearnerState, batch: Transition) -> jax.Array:
+    """[N] per agent i: mean absolute difference between its approximations' means and the
+    other agents' current deterministic actions (of the sub-policies they ran) on agent i's
+    batch [N * K, B, ...]. For the log only: the update never calls it."""
+    num_agents = state.approx["params"]["log_std"].shape[0]
+    joint = jax.tree.map(lambda x: x.reshape(num_agents, -1, *x.shape[2:]), batch)  # [N, K * B, ...]
+    true = act(config, state.actor, joint.obs, joint.policy)  # [N, K * B, N, A]
+    guess = jax.vmap(lambda approx, obs: approx_actions(config, approx, obs)[0])(state.approx, joint.obs)
+    gap = jnp.abs(guess - true).mean(axis=(1, 3))  # [N (agent i), N (other j)]
+    others = 1.0 - jnp.eye(num_agents)
+    return (gap * others).sum(-1) / jnp.maximum(others.sum(-1), 1.0)
+
+
+def _own_target_action(config: AlgoConfig, target_actors, agent: jax.Array, obs: jax.Array, policy: jax.Array | None) -> jax.Array:
+    """Agent ``agent``'s target action [B, A] (of the sub-policy it ran) on observations
+    [B, N, O], reading no other agent's target actor."""
+    actor_net, _ = networks(config)
+    own = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, agent * config.ensemble, config.ensemble), target_actors)
+    every = jax.vmap(lambda p: actor_forward(actor_net, p, obs[:, agent])[0])(own)  # [K, B, A]
+    chosen = jnp.zeros(obs.shape[0], jnp.int32) if policy is None else policy[:, agent]
+    return jnp.take_along_axis(every, chosen[None, :, None], axis=0)[0]
 
 
 def polyak(target, online, tau: float):
@@ -204,23 +229,23 @@ def polyak(target, online, tau: float):
     return jax.tree.map(lambda t, o: (1.0 - tau) * t + tau * o, target, online)
 
 
-def _agent_update(config: AlgoConfig, state: LearnerState, agent: jax.Array, batch: Transition, weights: jax.Array, actors, target_actors):
+def _agent_update(config: AlgoConfig, state: LearnerState, agent: jax.Array, batch: Transition, weights: jax.Array, target_actors):
     """One agent's update: its slice of ``state`` (its K sub-policies), its K batches
-    [K, B, ...] (one per partition), every agent's ``actors`` and ``target_actors`` [N * K].
+    [K, B, ...] (one per partition) and every agent's ``target_actors`` [N * K].
     See the module docstring."""
     actor_net, critic_net = networks(config)
     actor_opt, critic_opt = optimizers(config)
     joint = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), batch)  # the K batches as one [K * B, ...]
     info = {}
 
-    next_actions = act(config, target_actors, joint.next_obs, joint.policy)  # [K * B, N, A]
     approx, approx_opt = state.approx, state.approx_opt
-    if config.infer_policies:
-        true_actions = act(config, actors, joint.obs, joint.policy)
-        approx, approx_opt, info = _infer(config, approx, approx_opt, agent, joint, true_actions)
+    if config.infer_policies:  # eq. 8: the others' approximations, its own target actor
+        approx, approx_opt, info["infer_loss"] = _infer(config, approx, approx_opt, agent, joint)
         inferred = approx_actions(config, approx, joint.next_obs)[0]
-        own = (jnp.arange(next_actions.shape[-2]) == agent)[:, None]
-        next_actions = jnp.where(own, next_actions, inferred)  # eq. 8: the others' approximations
+        own = _own_target_action(config, target_actors, agent, joint.next_obs, joint.policy)
+        next_actions = inferred.at[:, agent].set(own)
+    else:
+        next_actions = act(config, target_actors, joint.next_obs, joint.policy)  # [K * B, N, A]
     next_q = critic_forward(critic_net, state.target_critic, critic_inputs(config, joint.next_obs, next_actions, agent))
     not_done = 1.0 - joint.terminated.astype(jnp.float32)
     target = jax.lax.stop_gradient(joint.rewards[:, agent] + config.gamma * not_done * next_q)
@@ -240,7 +265,9 @@ def _agent_update(config: AlgoConfig, state: LearnerState, agent: jax.Array, bat
         q_pi = critic_forward(critic_net, critic, critic_inputs(config, obs, actions, agent))
         return -jnp.mean(q_pi) + config.action_penalty * jnp.mean(jnp.square(pre))
 
-    a_loss, a_grads = jax.vmap(jax.value_and_grad(actor_loss))(state.actor, batch.obs, batch.actions)
+    active = (weights.max(axis=-1) > 0).astype(jnp.float32)  # [K]: sub-policies with a batch
+    scaled = lambda params, obs, actions, on: on * actor_loss(params, obs, actions)  # noqa: E731
+    a_loss, a_grads = jax.vmap(jax.value_and_grad(scaled))(state.actor, batch.obs, batch.actions, active)
     a_updates, actor_opt_state = jax.vmap(actor_opt.update)(a_grads, state.actor_opt, state.actor)
     actor = optax.apply_updates(state.actor, a_updates)
 
@@ -264,7 +291,7 @@ def update(config: AlgoConfig, state: LearnerState, batch: Transition, weights: 
     ``weights`` [N * K, B] are optional importance weights of the critic loss.
 
     Returns ``(state, info)`` with ``critic_loss``, ``actor_loss`` (mean over sub-policies),
-    ``q_mean`` [N], with --infer-policies ``infer_loss`` and ``infer_error`` [N], and the
+    ``q_mean`` [N], with --infer-policies ``infer_loss`` [N], and the
     per-sample TD loss (Q - y)^2 [N * K, B] for prioritised replay.
     """
     groups, batch_size = batch.rewards.shape[:2]
@@ -273,11 +300,9 @@ def update(config: AlgoConfig, state: LearnerState, batch: Transition, weights: 
     by_agent = lambda tree: jax.tree.map(lambda x: x.reshape(-1, config.ensemble, *x.shape[1:]), tree)  # noqa: E731
     flat = lambda tree: jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), tree)  # noqa: E731
     sliced = state.replace(actor=by_agent(state.actor), target_actor=by_agent(state.target_actor), actor_opt=by_agent(state.actor_opt))
-    per_agent = jax.vmap(_agent_update, in_axes=(None, 0, 0, 0, 0, None, None))
+    per_agent = jax.vmap(_agent_update, in_axes=(None, 0, 0, 0, 0, None))
     num_agents = groups // config.ensemble
-    new, info = per_agent(
-        config, sliced, jnp.arange(num_agents), by_agent(batch), by_agent(weights), state.actor, state.target_actor
-    )
+    new, info = per_agent(config, sliced, jnp.arange(num_agents), by_agent(batch), by_agent(weights), state.target_actor)
     new = new.replace(actor=flat(new.actor), target_actor=flat(new.target_actor), actor_opt=flat(new.actor_opt))
     info["td_loss"] = flat(info["td_loss"])
     return new, info
