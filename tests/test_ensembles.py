@@ -17,37 +17,29 @@ from scipy import stats
 
 from roverswarm.buffers.ranked import ranked_buffer
 from roverswarm.buffers.uniform import Transition, importance_weights, uniform_buffer
+from test_ranked import N, transitions
 from roverswarm.cli import main
 from roverswarm.errors import RunStopped
 from roverswarm.evaluate import evaluate_run
 from roverswarm.train import train
 
-N, K = 2, 3  # agents, sub-policies per agent: G = 6 sampling groups
+K = 3  # sub-policies per agent: with test_ranked's N = 2 agents, G = 6 sampling groups
 DRAWS = 300
 
 
-def transitions(first: int, policy: np.ndarray) -> Transition:
+def numbered(first: int, policy: np.ndarray) -> Transition:
     """len(policy) transitions numbered from ``first`` (in obs), agent sub-policies ``policy`` [T, N]."""
-    count = len(policy)
-    number = jnp.arange(first, first + count, dtype=jnp.float32)
-    return Transition(
-        obs=jnp.broadcast_to(number[:, None, None], (count, N, 1)),
-        actions=jnp.zeros((count, N, 2)),
-        rewards=jnp.zeros((count, N)),
-        next_obs=jnp.zeros((count, N, 1)),
-        terminated=jnp.zeros(count, bool),
-        policy=jnp.asarray(policy, jnp.int32),
-    )
+    return transitions(first, len(policy), policy)
 
 
 def fill(buffer, rng, total: int, chunk: int):
     """Add ``total`` transitions in chunks with random sub-policies; returns the state and the
     sub-policies of every transition ever added [total, N] (transition t holds number t)."""
     policies = rng.integers(0, K, (total, N))
-    state = buffer.init(jax.tree.map(lambda x: x[0], transitions(0, policies[:1])))
+    state = buffer.init(jax.tree.map(lambda x: x[0], numbered(0, policies[:1])))
     add = jax.jit(buffer.add)
     for start in range(0, total, chunk):
-        state = add(state, transitions(start, policies[start : start + chunk]))
+        state = add(state, numbered(start, policies[start : start + chunk]))
     return state, policies
 
 
@@ -106,7 +98,7 @@ def test_ranked_partitions_follow_eq_12_13_within_each_partition():
     state = buffer.set_priorities(state, slots, jnp.asarray(losses[agent], jnp.float32))
     state = buffer.refresh(state, jnp.bool_(True))
     fresh = rng.integers(0, K, (50, N))
-    state = buffer.add(state, transitions(600, fresh))
+    state = buffer.add(state, numbered(600, fresh))
     policies = np.concatenate([policies, fresh])
     numbers, probabilities, _ = draw(buffer, state)
     now = np.concatenate([losses, np.full((N, 50), np.inf)], axis=1)
@@ -129,14 +121,14 @@ def test_ranked_draws_after_overwrites_report_their_probabilities(num_policies):
     buffer = ranked_buffer(capacity, 256, N, 1.5, 0.2, num_policies)
     rng = np.random.default_rng(2)
     policies = rng.integers(0, num_policies, (700, N))
-    state = buffer.init(jax.tree.map(lambda x: x[0], transitions(0, policies[:1])))
-    state = buffer.add(state, transitions(0, policies[:500]))
+    state = buffer.init(jax.tree.map(lambda x: x[0], numbered(0, policies[:1])))
+    state = buffer.add(state, numbered(0, policies[:500]))
     groups = N * num_policies
     losses = rng.permutation(np.geomspace(1e-10, 1e10, 500))
     slots = jnp.asarray(np.broadcast_to(np.arange(500), (groups, 500)))
     state = buffer.set_priorities(state, slots, jnp.asarray(np.broadcast_to(losses, (groups, 500)), jnp.float32))
     state = buffer.refresh(state, jnp.bool_(True))
-    state = buffer.add(state, transitions(500, policies[500:]))  # overwrites the 200 oldest
+    state = buffer.add(state, numbered(500, policies[500:]))  # overwrites the 200 oldest
     numbers, probabilities, _ = draw(buffer, state)
     for g in range(groups):
         mine = members(policies, capacity, g) if num_policies > 1 else np.arange(200, 700)

@@ -23,8 +23,9 @@ def reference_probabilities(losses: np.ndarray, alpha: float, beta: float) -> np
     return (1.0 - beta) * powered / powered.sum() + beta / len(losses)
 
 
-def transitions(first: int, count: int) -> Transition:
-    """``count`` transitions whose observations hold their number ``first``, ``first + 1``, ..."""
+def transitions(first: int, count: int, policy: np.ndarray | None = None) -> Transition:
+    """``count`` transitions whose observations hold their number ``first``, ``first + 1``, ...;
+    with ``policy`` [count, N], the sub-policy each agent ran (policy ensembles)."""
     number = jnp.arange(first, first + count, dtype=jnp.float32)
     return Transition(
         obs=jnp.broadcast_to(number[:, None, None], (count, N, 1)),
@@ -32,6 +33,7 @@ def transitions(first: int, count: int) -> Transition:
         rewards=jnp.zeros((count, N)),
         next_obs=jnp.zeros((count, N, 1)),
         terminated=jnp.zeros(count, bool),
+        policy=None if policy is None else jnp.asarray(policy, jnp.int32),
     )
 
 

@@ -240,10 +240,11 @@ def ranked_buffer(capacity: int, batch_size: int, num_agents: int, alpha: float,
         rescaled = jnp.clip((pick - top) / jnp.maximum(1.0 - top, 1e-30), 0.0, 1.0)
         ranked_index = jnp.minimum(ranked_draw(slot_sums, group_sums, block_cdf, rescaled, within), capacity - 1)
         overwritten = lambda index: ((index - extra.fresh_start) % capacity) < extra.fresh  # noqa: E731
+        uniform_index, fresh_index = stored(live), stored(fresh)
         # a table draw on a slot overwritten since the refresh is redrawn among the fresh ones
-        redraw = stored(jnp.where(fresh > 0, fresh, live))
+        redraw = jnp.where(fresh > 0, fresh_index, uniform_index)
         ranked_index = jnp.where(overwritten(ranked_index), redraw, ranked_index)
-        index = jnp.where(pick < beta, stored(live), jnp.where(pick < top, stored(fresh), ranked_index))
+        index = jnp.where(pick < beta, uniform_index, jnp.where(pick < top, fresh_index, ranked_index))
         # the exact probability of this draw (a mixture of the ways to reach a slot)
         stale = _region_share(slot_sums, group_sums, block_cdf, extra.fresh_start, extra.fresh, capacity)
         is_fresh = overwritten(index)
