@@ -16,7 +16,7 @@ import pytest
 from scipy import stats
 
 from roverswarm.buffers.ranked import ranked_buffer
-from roverswarm.buffers.uniform import Transition, importance_weights, uniform_buffer
+from roverswarm.buffers.uniform import Transition, importance_weights, sample_recent, uniform_buffer
 from test_ranked import N, transitions
 from roverswarm.cli import main
 from roverswarm.errors import RunStopped
@@ -173,6 +173,21 @@ def test_every_sub_policy_learns(ensemble_run):
     assert len(np.unique(np.round(moved, 6))) == moved.size
 
 
+@pytest.mark.parametrize("added, window, expected", [(70, 10, range(60, 70)), (30, 50, range(0, 30)), (130, 50, range(80, 130))])
+def test_recent_batches_come_uniformly_from_the_newest_window(added, window, expected):
+    """The batches the approximations fit: the newest ``window`` transitions (all stored ones if
+    fewer), each equally likely, also after the ring wrapped (capacity 50)."""
+    buffer = uniform_buffer(50, 8, N)
+    state = buffer.init(jax.tree.map(lambda x: x[0], transitions(0, 1)))
+    for start in range(0, added, 10):
+        state = buffer.add(state, transitions(start, 10))
+    draw = jax.jit(lambda key: sample_recent(state, key, window, 400).obs[:, 0, 0])
+    numbers = np.concatenate([np.asarray(draw(jax.random.PRNGKey(seed))) for seed in range(5)]).astype(int)
+    counts = np.bincount(numbers - expected.start, minlength=len(expected))
+    assert set(numbers) == set(expected) and len(counts) == len(expected)
+    assert stats.chisquare(counts).pvalue > 1e-3
+
+
 def test_the_inferred_policies_learn_the_other_agents(tiny_config):
     """The approximations' loss (negative log-likelihood of the others' replayed actions minus
     the entropy bonus) falls to well under half of what the first updates see, for every seed;
@@ -225,6 +240,7 @@ def test_evaluation_runs_random_draws_or_each_sub_policy(ensemble_run, capsys):
         (["--ensemble", "0"], "--ensemble must be >= 1 (sub-policies per agent), got 0"),
         (["--infer-policies", "--infer-entropy", "-0.1"], "--infer-entropy must be >= 0, got -0.1"),
         (["--algo", "ddpg", "--infer-policies"], "--infer-policies needs --algo maddpg"),
+        (["--infer-policies", "--infer-window", "0"], "--infer-window must be >= 1 transition, got 0"),
     ],
 )
 def test_bad_ensemble_or_inference_input_is_one_line_and_exit_2(argv, message, capsys, tmp_path):

@@ -15,13 +15,15 @@ policies (eq. 7-8), it checks
 * the (weighted) critic loss [N] and the actor loss [N];
 * the updated critics, actors (each sub-policy on its own batch, on the *updated* critic),
   target critics, target actors and approximations (one step on the Gaussian negative
-  log-likelihood minus lambda times the entropy; an agent's approximation of itself unused).
+  log-likelihood minus lambda times the entropy, on the separate batch of recent transitions;
+  an agent's approximation of itself unused).
 
 K = 1 without inference is plain MADDPG: the same reference, the same code path.
 The last tests check that the comparison discriminates: the reference with the actor step
 on the old critic, without cutting the bootstrap at termination, with the true target
-policies in place of the approximations, or with sub-policy 0 for every agent in the target,
-disagrees with the code.
+policies in place of the approximations, with the approximations fitted on the agent's own
+sample instead of the recent transitions, or with sub-policy 0 for every agent in the
+target, disagrees with the code.
 """
 
 from __future__ import annotations
@@ -49,6 +51,15 @@ def assert_parameters_close(got, want):
     off = ~np.isclose(got, want, **TOL)
     assert off.mean() <= 1e-3 and np.abs(got - want).max() < 1e-3, (off.sum(), np.abs(got - want).max())
 ADAM_B1, ADAM_B2, ADAM_EPS = 0.9, 0.999, 1e-8
+
+_rng = np.random.default_rng(1)
+RECENT = Transition(  # the recent transitions the approximations fit (a batch of 24, not B)
+    obs=jnp.asarray(_rng.standard_normal((24, N, O)), jnp.float32),
+    actions=jnp.asarray(_rng.uniform(-1, 1, (24, N, A)), jnp.float32),
+    rewards=jnp.zeros((24, N)),
+    next_obs=jnp.zeros((24, N, O)),
+    terminated=jnp.zeros(24, bool),
+)
 
 
 # ----------------------------------------------------------------------------- reference
@@ -99,10 +110,12 @@ def gaussian(params, obs):
     return mean, jnp.clip(params["params"]["log_std"], -5.0, 1.0)
 
 
-def reference_update(cfg, state, batch, weights, actor_on_new_critic=True, cut_bootstrap=True, true_targets=False, ignore_sub_policy=False):
+def reference_update(
+    cfg, state, batch, weights, actor_on_new_critic=True, cut_bootstrap=True, true_targets=False, ignore_sub_policy=False, fit_on_sample=False
+):
     """Every agent's update, one agent at a time; results stacked on a leading [N] axis
     ([N * K] for the actors, [N * K, B] for the TD loss). ``batch`` [N * K, B, ...] holds agent
-    i's batch from sub-policy k's partition at i * K + k."""
+    i's batch from sub-policy k's partition at i * K + k; the approximations fit RECENT."""
     K = cfg.ensemble
     pick = lambda tree, i: jax.tree.map(lambda x: x[i], tree)  # noqa: E731
     soft = lambda target, online: jax.tree.map(lambda t, o: (1 - cfg.tau) * t + cfg.tau * o, target, online)  # noqa: E731
@@ -122,9 +135,11 @@ def reference_update(cfg, state, batch, weights, actor_on_new_critic=True, cut_b
             for j in range(N):
                 params = pick(pick(state.approx, i), j)
 
-                def nll(p, j=j):
-                    mean, log_std = gaussian(p, obs[:, j])
-                    logp = -0.5 * ((actions[:, j] - mean) / jnp.exp(log_std)) ** 2 - log_std - 0.5 * np.log(2 * np.pi)
+                fit_obs, fit_actions = (obs, actions) if fit_on_sample else (RECENT.obs, RECENT.actions)
+
+                def nll(p, j=j, fit_obs=fit_obs, fit_actions=fit_actions):
+                    mean, log_std = gaussian(p, fit_obs[:, j])
+                    logp = -0.5 * ((fit_actions[:, j] - mean) / jnp.exp(log_std)) ** 2 - log_std - 0.5 * np.log(2 * np.pi)
                     entropy = jnp.sum(log_std + 0.5 * np.log(2 * np.pi * np.e))
                     return -jnp.mean(logp.sum(-1)) - cfg.infer_entropy * entropy
 
@@ -230,7 +245,7 @@ def case(request):
     )
     assert 0 < int(batch.terminated.sum()) < G * B
     weights = f32(rng.uniform(0.1, 2.0, (G, B))) if weighted else None
-    new_state, info = jax.jit(update, static_argnums=0)(cfg, state, batch, weights)
+    new_state, info = jax.jit(update, static_argnums=0)(cfg, state, batch, weights, RECENT)
     return cfg, state, batch, weights, new_state, info, reference_update(cfg, state, batch, weights)
 
 
@@ -271,12 +286,16 @@ def test_reference_variants_are_caught(case, variant):
     assert gap > 1e-3, variant
 
 
-@pytest.mark.parametrize("variant", [dict(true_targets=True), dict(ignore_sub_policy=True)], ids=["true_target_policies", "target_sub_policy_0"])
+@pytest.mark.parametrize(
+    "variant",
+    [dict(true_targets=True), dict(fit_on_sample=True), dict(ignore_sub_policy=True)],
+    ids=["true_target_policies", "approximations_fit_the_sample", "target_sub_policy_0"],
+)
 def test_the_target_actions_are_caught(case, variant):
     """Inferred policies: the targets use the approximations; ensembles: the target sub-policy
     each agent ran in the transition. The reference without that disagrees with the code."""
     cfg, state, batch, weights, new_state, info, _ = case
-    if ("true_targets" in variant and not cfg.infer_policies) or ("ignore_sub_policy" in variant and cfg.ensemble == 1):
+    if (not cfg.infer_policies and ("true_targets" in variant or "fit_on_sample" in variant)) or ("ignore_sub_policy" in variant and cfg.ensemble == 1):
         pytest.skip("the variant changes nothing for this case")
     wrong = reference_update(cfg, state, batch, weights, **variant)
     assert np.abs(np.asarray(info["td_loss"]) - np.asarray(wrong["td_loss"])).max() > 1e-3
@@ -315,7 +334,7 @@ def test_an_empty_partition_leaves_its_sub_policy_alone(case):
     if cfg.ensemble == 1:
         pytest.skip("no partitions")
     zeroed = (jnp.ones((N * cfg.ensemble, B)) if weights is None else weights).at[1].set(0.0)
-    new_state, _ = jax.jit(update, static_argnums=0)(cfg, state, batch, zeroed)
+    new_state, _ = jax.jit(update, static_argnums=0)(cfg, state, batch, zeroed, RECENT)
     still = jax.tree.map(lambda new, old: np.abs(new[1] - old[1]).max(), new_state.actor, state.actor)
     moved = jax.tree.map(lambda new, old: np.abs(new[0] - old[0]).max(), new_state.actor, state.actor)
     assert max(jax.tree.leaves(still)) == 0.0 and max(jax.tree.leaves(moved)) > 1e-4

@@ -36,7 +36,7 @@ from tensorboardX import SummaryWriter
 
 from roverswarm.algos.maddpg import ALGOS, AlgoConfig, LearnerState, act, inference_error, init_learner, update
 from roverswarm.buffers.ranked import ranked_buffer
-from roverswarm.buffers.uniform import Buffer, BufferState, Transition, importance_weights, newest_fraction, uniform_buffer
+from roverswarm.buffers.uniform import Buffer, BufferState, Transition, importance_weights, newest_fraction, sample_recent, uniform_buffer
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, reset, step_env
 from roverswarm.env.missions import load_mission
 from roverswarm.env.scenarios import get_scenario
@@ -153,6 +153,7 @@ def validate(config: TrainConfig) -> EnvParams:
         require(value > 0, f"--{name.replace('_', '-')} must be positive, got {value}")
     require(learner.ensemble >= 1, f"--ensemble must be >= 1 (sub-policies per agent), got {learner.ensemble}")
     require(learner.infer_entropy >= 0, f"--infer-entropy must be >= 0, got {learner.infer_entropy}")
+    require(learner.infer_window >= 1, f"--infer-window must be >= 1 transition, got {learner.infer_window}")
     require(
         not learner.infer_policies or learner.algo == "maddpg",
         "--infer-policies needs --algo maddpg: a DDPG critic never sees the other agents' actions",
@@ -269,8 +270,11 @@ def learn(config: TrainConfig, buffer: Buffer, learner: LearnerState, buffer_sta
     sample = buffer.sample(buffer_state, key)
     weights = importance_weights(sample) if config.importance_weights else jnp.ones(sample.probabilities.shape)
     weights = weights * (sample.population > 0)[:, None]
-    error = inference_error(config.learner, learner, sample.batch) if config.learner.infer_policies else None
-    learner, info = update(config.learner, learner, sample.batch, weights)
+    error = recent = None
+    if config.learner.infer_policies:
+        error = inference_error(config.learner, learner, sample.batch)
+        recent = sample_recent(buffer_state, jax.random.fold_in(key, 1), config.learner.infer_window, config.batch_size)
+    learner, info = update(config.learner, learner, sample.batch, weights, recent)
     if error is not None:
         info["infer_error"] = error
     td_loss = info.pop("td_loss")

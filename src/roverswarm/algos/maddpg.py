@@ -32,8 +32,10 @@ MADDPG.
 
 Inferred policies (eq. 7-8, ``infer_policies``): agent i keeps a Gaussian approximation
 mu_hat_i^j of every other agent j's policy (mean tanh(MLP(o_j)), learned log-std), fitted
-before each critic step to the other agents' actions in agent i's batch by minimising the
-negative log-likelihood minus ``infer_entropy`` (lambda) times the entropy. Agent i's target
+before each critic step to the other agents' actions in a batch of recent transitions (the
+``recent`` argument of :func:`update`: the others' current behaviour, not their average over
+the whole replay) by minimising the negative log-likelihood minus ``infer_entropy`` (lambda)
+times the entropy. Agent i's target
 then uses the approximations' means for the other agents,
 
     y = r_i + gamma * (1 - terminated) * Q'_i(x', mu_hat_i^1(o'_1), .., mu'_i(o'_i), .., mu_hat_i^N(o'_N))
@@ -93,6 +95,9 @@ class AlgoConfig:
     from the replay and uses them in its critic's target instead of their true policies (eq. 7-8)."""
     infer_entropy: float = 1e-3
     """lambda: weight of the entropy bonus in the approximations' loss (--infer-policies)."""
+    infer_window: int = 10_000
+    """--infer-policies: the approximations fit batches drawn from the newest this many
+    transitions of the replay, so they follow the others' current policies."""
 
 
 @struct.dataclass
@@ -229,10 +234,12 @@ def polyak(target, online, tau: float):
     return jax.tree.map(lambda t, o: (1.0 - tau) * t + tau * o, target, online)
 
 
-def _agent_update(config: AlgoConfig, state: LearnerState, agent: jax.Array, batch: Transition, weights: jax.Array, target_actors):
+def _agent_update(
+    config: AlgoConfig, state: LearnerState, agent: jax.Array, batch: Transition, weights: jax.Array, target_actors, recent: Transition | None
+):
     """One agent's update: its slice of ``state`` (its K sub-policies), its K batches
-    [K, B, ...] (one per partition) and every agent's ``target_actors`` [N * K].
-    See the module docstring."""
+    [K, B, ...] (one per partition), every agent's ``target_actors`` [N * K] and, with
+    inferred policies, the ``recent`` transitions its approximations fit. See the module docstring."""
     actor_net, critic_net = networks(config)
     actor_opt, critic_opt = optimizers(config)
     joint = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), batch)  # the K batches as one [K * B, ...]
@@ -240,7 +247,7 @@ def _agent_update(config: AlgoConfig, state: LearnerState, agent: jax.Array, bat
 
     approx, approx_opt = state.approx, state.approx_opt
     if config.infer_policies:  # eq. 8: the others' approximations, its own target actor
-        approx, approx_opt, info["infer_loss"] = _infer(config, approx, approx_opt, agent, joint)
+        approx, approx_opt, info["infer_loss"] = _infer(config, approx, approx_opt, agent, recent)
         inferred = approx_actions(config, approx, joint.next_obs)[0]
         own = _own_target_action(config, target_actors, agent, joint.next_obs, joint.policy)
         next_actions = inferred.at[:, agent].set(own)
@@ -285,10 +292,12 @@ def _agent_update(config: AlgoConfig, state: LearnerState, agent: jax.Array, bat
     return new_state, info
 
 
-def update(config: AlgoConfig, state: LearnerState, batch: Transition, weights: jax.Array | None = None):
+def update(config: AlgoConfig, state: LearnerState, batch: Transition, weights: jax.Array | None = None, recent: Transition | None = None):
     """Update every agent once. ``batch`` has a leading group axis [N * K, B, ...]: agent i's
     sample from its sub-policy k's partition at i * K + k (K = 1: agent i's own sample at i);
-    ``weights`` [N * K, B] are optional importance weights of the critic loss.
+    ``weights`` [N * K, B] are optional importance weights of the critic loss; ``recent``
+    [B', ...] (required with --infer-policies) are the recent transitions every agent's
+    approximations fit before its critic step.
 
     Returns ``(state, info)`` with ``critic_loss``, ``actor_loss`` (mean over sub-policies),
     ``q_mean`` [N], with --infer-policies ``infer_loss`` [N], and the
@@ -300,9 +309,11 @@ def update(config: AlgoConfig, state: LearnerState, batch: Transition, weights: 
     by_agent = lambda tree: jax.tree.map(lambda x: x.reshape(-1, config.ensemble, *x.shape[1:]), tree)  # noqa: E731
     flat = lambda tree: jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), tree)  # noqa: E731
     sliced = state.replace(actor=by_agent(state.actor), target_actor=by_agent(state.target_actor), actor_opt=by_agent(state.actor_opt))
-    per_agent = jax.vmap(_agent_update, in_axes=(None, 0, 0, 0, 0, None))
+    if config.infer_policies and recent is None:
+        raise ValueError("update: --infer-policies needs the recent transitions its approximations fit")
+    per_agent = jax.vmap(_agent_update, in_axes=(None, 0, 0, 0, 0, None, None))
     num_agents = groups // config.ensemble
-    new, info = per_agent(config, sliced, jnp.arange(num_agents), by_agent(batch), by_agent(weights), state.target_actor)
+    new, info = per_agent(config, sliced, jnp.arange(num_agents), by_agent(batch), by_agent(weights), state.target_actor, recent)
     new = new.replace(actor=flat(new.actor), target_actor=flat(new.target_actor), actor_opt=flat(new.actor_opt))
     info["td_loss"] = flat(info["td_loss"])
     return new, info

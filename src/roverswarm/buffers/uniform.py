@@ -128,6 +128,12 @@ def gather(state: BufferState, indices: jax.Array) -> Transition:
     return jax.tree.map(lambda d: d[indices], state.data)
 
 
+def sample_recent(state: BufferState, key: jax.Array, window: int, batch_size: int) -> Transition:
+    """``batch_size`` transitions [B, ...] drawn uniformly from the newest ``window`` stored ones."""
+    ages = jax.random.randint(key, (batch_size,), 0, jnp.clip(state.size, 1, window))
+    return gather(state, nth_stored(state, ages))
+
+
 def importance_weights(sample: Sample) -> jax.Array:
     """[G, B] importance-sampling weights ``1 / (M * P(i))``, divided by each batch's maximum."""
     weights = 1.0 / (jnp.maximum(sample.population, 1)[:, None] * sample.probabilities)
