@@ -12,7 +12,13 @@ on batches of 1024, 2x64 networks), one seed, 20 parallel environments, replay 1
 * ``overhead``: ``1 - updates * update / chunk``, the share of everything else. Target <= 25%.
 * ``ranked``: seconds per 1000 episodes with the experience sample optimizer
   (``--replay ranked``, the preset's alpha, beta and refresh period) and its time relative
-  to the uniform replay's. Target: at most +5% (the paper reports +1.8% to +2.7%).
+  to the uniform replay's: the median over chunks of each back-to-back pair's ratio, with
+  the smallest and largest pair in brackets. Target: at most +5% (the paper reports +1.8%
+  to +2.7%). Chunks vary by several percent from one to the next, so this ratio is coarse;
+* ``ranked replay work``: the same cost measured precisely, from its parts timed alone on
+  a replay of 50,000 transitions: the extra time per update of the ranked replay's sampling
+  and loss write-back over the uniform replay's, times the updates of a chunk, plus its
+  re-rankings (one per ``--refresh-every`` updates), over the uniform chunk's time.
 * ``vs reference``: the reference implementations' per-agent Python loop runs at about 90 s
   per 1000 episodes for N = 3 on this machine (one environment, one update per 100 steps,
   the reference preset); the ratio 90 / ours for N = 3 and that preset. Target >= 10x.
@@ -24,7 +30,7 @@ batches per update) and ``--infer-policies`` (each agent fits the others' polici
 each critic step).
 
 Run ``python benchmarks/train_throughput.py`` (``--quick``: N = 3 only; ``--only main`` or
-``--only extensions`` for one table).
+``--only extensions`` for one table; ``--preset default`` for one preset in the main table).
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ import argparse
 import dataclasses
 import statistics
 import time
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -41,14 +48,15 @@ from roverswarm.algos.maddpg import init_learner, update
 from roverswarm.buffers.uniform import Transition
 from roverswarm.env.mars import ACTION_SIZE, observation_size
 from roverswarm.jaxcache import enable_compilation_cache
-from roverswarm.train import PRESETS, TrainConfig, init_runner, make_buffer, run_chunk, validate
+from roverswarm.train import PRESETS, TrainConfig, example_transition, init_runner, make_buffer, run_chunk, validate
 
 REFERENCE_SECONDS_N3 = 90.0
 
 
-def chunk_seconds(configs: list[TrainConfig], chunks: int) -> list[float]:
-    """Median wall seconds of a 1000-episode chunk of each config, once updates run in every
-    iteration. The configs' chunks alternate, so a change in the machine's load hits them alike."""
+def chunk_seconds(configs: list[TrainConfig], chunks: int) -> list[list[float]]:
+    """Wall seconds of ``chunks`` 1000-episode chunks of each config, once updates run in every
+    iteration. The configs' chunks alternate, so a change in the machine's load hits them alike
+    and chunk j of one config pairs with chunk j of another (see :func:`paired_ratio`)."""
     runs = []
     for config in configs:
         params = validate(config)
@@ -67,7 +75,14 @@ def chunk_seconds(configs: list[TrainConfig], chunks: int) -> list[float]:
             run[3], metrics = run_chunk(config, params, buffer, runner)
             jax.block_until_ready(metrics)
             spent.append(time.perf_counter() - start)
-    return [statistics.median(spent) for spent in times]
+    return times
+
+
+def paired_ratio(base: list[float], other: list[float]) -> tuple[float, float, float]:
+    """Median, min and max over chunks of ``other[j] / base[j]``: each pair ran back to back,
+    so a ratio is robust to load that drifts over the run, and its spread shows the noise."""
+    ratios = [o / b for b, o in zip(base, other)]
+    return statistics.median(ratios), min(ratios), max(ratios)
 
 
 def update_seconds(config: TrainConfig, count: int) -> float:
@@ -97,39 +112,96 @@ def update_seconds(config: TrainConfig, count: int) -> float:
     return statistics.median(times) / count
 
 
+def replay_seconds(config: TrainConfig, count: int = 200) -> tuple[float, float]:
+    """The replay's own work, timed alone: seconds per update of sampling every group's batch
+    and writing its losses back (a scan of ``count``), and seconds of one re-ranking (zero for
+    uniform replay). On a replay of 50,000 transitions with random losses, 5,000 of them
+    added since the last re-ranking."""
+    params = validate(config)
+    buffer = make_buffer(config, params)
+    example = example_transition(config, params)
+    stored = jax.tree.map(lambda x: jnp.broadcast_to(x, (50_000, *x.shape)), example)
+    add, refresh = jax.jit(buffer.add), jax.jit(buffer.refresh)
+    state = add(buffer.init(example), stored)
+    if state.extra is not None:
+        state = state.replace(extra=state.extra.replace(loss=jax.random.uniform(jax.random.PRNGKey(1), state.extra.loss.shape)))
+    state = add(refresh(state, jnp.bool_(True)), jax.tree.map(lambda x: x[:5_000], stored))
+
+    @partial(jax.jit, donate_argnums=0)  # donated, as in training: the replay is never copied
+    def replay_work(state, key):
+        def one(state, k):
+            sample = buffer.sample(state, k)
+            return buffer.set_priorities(state, sample.indices, jnp.ones(sample.indices.shape)), sample.batch.obs.sum()
+
+        state, sums = jax.lax.scan(one, state, jax.random.split(key, count))
+        return state, sums.sum()
+
+    @jax.jit
+    def rerank(state):  # the new rank tables only, so the replay is not copied to an output
+        return buffer.refresh(state, jnp.bool_(True)).extra
+
+    def median_seconds(run) -> float:
+        jax.block_until_ready(run())
+        spent = []
+        for _ in range(7):
+            start = time.perf_counter()
+            jax.block_until_ready(run())
+            spent.append(time.perf_counter() - start)
+        return statistics.median(spent)
+
+    def work():
+        nonlocal state
+        state, total = replay_work(state, jax.random.PRNGKey(0))
+        return total
+
+    reranking = 0.0 if state.extra is None else median_seconds(lambda: rerank(state))
+    return median_seconds(work) / count, reranking
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="N = 3 only")
     parser.add_argument("--rovers", type=int, nargs="+", default=[2, 3, 4, 5], help="swarm sizes N to measure")
     parser.add_argument("--chunks", type=int, default=3, help="timed chunks per configuration")
     parser.add_argument("--only", choices=["main", "extensions"], help="print one of the two tables")
+    parser.add_argument("--preset", choices=list(PRESETS), nargs="+", default=list(PRESETS), help="presets of the main table")
     args = parser.parse_args()
     enable_compilation_cache()
     rover_counts = (3,) if args.quick else tuple(args.rovers)
     chunks = args.chunks
     print(f"jax {jax.__version__} | {jax.devices()[0]} | 1 seed, 20 envs, replay 1e6\n")
     if args.only != "extensions":
-        main_table(rover_counts, chunks)
+        main_table(rover_counts, chunks, args.preset)
     if args.only != "main":
         extensions_table(rover_counts, chunks)
 
 
-def main_table(rover_counts: tuple[int, ...], chunks: int) -> None:
-    print("| N | algo | preset | s/1000 ep | update (ms) | updates/1000 ep | overhead | ranked s/1000 ep | ranked vs uniform | vs reference |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+def main_table(rover_counts: tuple[int, ...], chunks: int, presets: list[str]) -> None:
+    print(
+        "| N | algo | preset | s/1000 ep | update (ms) | updates/1000 ep | overhead | ranked s/1000 ep | ranked vs uniform "
+        "| ranked replay work per update (ms) | re-ranking (ms) | ranked replay work | vs reference |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for n in rover_counts:
         for algo in ("maddpg", "ddpg"):
-            for preset, base in PRESETS.items():
+            for preset in presets:
+                base = PRESETS[preset]
                 config = dataclasses.replace(base, scenario=f"paper-{n}", learner=dataclasses.replace(base.learner, algo=algo))
                 params = validate(config)
                 updates = config.log_every * params.max_steps // config.update_every
-                chunk, ranked = chunk_seconds([config, dataclasses.replace(config, replay="ranked")], chunks)
+                uniform, ranked = chunk_seconds([config, dataclasses.replace(config, replay="ranked")], chunks)
+                chunk = statistics.median(uniform)
+                ratio, low, high = paired_ratio(uniform, ranked)
+                per_update, _ = replay_seconds(config)
+                ranked_update, rerank = replay_seconds(dataclasses.replace(config, replay="ranked"))
+                extra = (ranked_update - per_update) * updates + rerank * updates / config.refresh_every
                 bare = update_seconds(config, updates)
                 overhead = 1.0 - updates * bare / chunk
                 versus = f"{REFERENCE_SECONDS_N3 / chunk:.0f}x" if n == 3 and preset == "reference" else "-"
                 print(
-                    f"| {n} | {algo} | {preset} | {chunk:.2f} | {bare * 1e3:.2f} | {updates} | {overhead:.0%} | {ranked:.2f} "
-                    f"| {ranked / chunk - 1:+.1%} | {versus} |",
+                    f"| {n} | {algo} | {preset} | {chunk:.2f} | {bare * 1e3:.2f} | {updates} | {overhead:.0%} "
+                    f"| {statistics.median(ranked):.2f} | {ratio - 1:+.1%} ({low - 1:+.1%} to {high - 1:+.1%}) "
+                    f"| {(ranked_update - per_update) * 1e3:.3f} | {rerank * 1e3:.0f} | {extra / chunk:+.1%} | {versus} |",
                     flush=True,
                 )
 
@@ -142,7 +214,8 @@ def extensions_table(rover_counts: tuple[int, ...], chunks: int) -> None:
         options = [dict(ensemble=3), dict(infer_policies=True)]
         configs = [plain] + [dataclasses.replace(plain, learner=dataclasses.replace(plain.learner, **o)) for o in options]
         base, ensemble, infer = chunk_seconds(configs, chunks)
-        print(f"| {n} | {base:.2f} | {ensemble:.2f} | {ensemble / base:.2f}x | {infer:.2f} | {infer / base:.2f}x |", flush=True)
+        cells = [f"{statistics.median(times):.2f} | {paired_ratio(base, times)[0]:.2f}x" for times in (ensemble, infer)]
+        print(f"| {n} | {statistics.median(base):.2f} | {' | '.join(cells)} |", flush=True)
 
 
 if __name__ == "__main__":
