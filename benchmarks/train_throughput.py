@@ -85,6 +85,17 @@ def paired_ratio(base: list[float], other: list[float]) -> tuple[float, float, f
     return statistics.median(ratios), min(ratios), max(ratios)
 
 
+def median_seconds(run, repeats: int) -> float:
+    """Median wall seconds of ``repeats`` calls of ``run`` (jitted work), after one warm-up call."""
+    jax.block_until_ready(run())
+    spent = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(run())
+        spent.append(time.perf_counter() - start)
+    return statistics.median(spent)
+
+
 def update_seconds(config: TrainConfig, count: int) -> float:
     """Seconds of one bare update of all agents (median over repeats of ``count`` scanned updates)."""
     params = validate(config)
@@ -103,13 +114,7 @@ def update_seconds(config: TrainConfig, count: int) -> float:
     def many(learner):
         return jax.lax.scan(lambda s, _: (update(config.learner, s, batch)[0], None), learner, None, length=count)[0]
 
-    jax.block_until_ready(many(learner))
-    times = []
-    for _ in range(3):
-        start = time.perf_counter()
-        jax.block_until_ready(many(learner))
-        times.append(time.perf_counter() - start)
-    return statistics.median(times) / count
+    return median_seconds(lambda: many(learner), repeats=3) / count
 
 
 def replay_seconds(config: TrainConfig, count: int = 200) -> tuple[float, float]:
@@ -140,22 +145,13 @@ def replay_seconds(config: TrainConfig, count: int = 200) -> tuple[float, float]
     def rerank(state):  # the new rank tables only, so the replay is not copied to an output
         return buffer.refresh(state, jnp.bool_(True)).extra
 
-    def median_seconds(run) -> float:
-        jax.block_until_ready(run())
-        spent = []
-        for _ in range(7):
-            start = time.perf_counter()
-            jax.block_until_ready(run())
-            spent.append(time.perf_counter() - start)
-        return statistics.median(spent)
-
     def work():
         nonlocal state
         state, total = replay_work(state, jax.random.PRNGKey(0))
         return total
 
-    reranking = 0.0 if state.extra is None else median_seconds(lambda: rerank(state))
-    return median_seconds(work) / count, reranking
+    reranking = 0.0 if state.extra is None else median_seconds(lambda: rerank(state), repeats=7)
+    return median_seconds(work, repeats=7) / count, reranking
 
 
 def main() -> None:

@@ -303,14 +303,14 @@ def update(config: AlgoConfig, state: LearnerState, batch: Transition, weights: 
     ``q_mean`` [N], with --infer-policies ``infer_loss`` [N], and the
     per-sample TD loss (Q - y)^2 [N * K, B] for prioritised replay.
     """
+    if config.infer_policies and recent is None:
+        raise ValueError("update: --infer-policies needs the recent transitions its approximations fit")
     groups, batch_size = batch.rewards.shape[:2]
     if weights is None:
         weights = jnp.ones((groups, batch_size))
     by_agent = lambda tree: jax.tree.map(lambda x: x.reshape(-1, config.ensemble, *x.shape[1:]), tree)  # noqa: E731
     flat = lambda tree: jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), tree)  # noqa: E731
     sliced = state.replace(actor=by_agent(state.actor), target_actor=by_agent(state.target_actor), actor_opt=by_agent(state.actor_opt))
-    if config.infer_policies and recent is None:
-        raise ValueError("update: --infer-policies needs the recent transitions its approximations fit")
     per_agent = jax.vmap(_agent_update, in_axes=(None, 0, 0, 0, 0, None, None))
     num_agents = groups // config.ensemble
     new, info = per_agent(config, sliced, jnp.arange(num_agents), by_agent(batch), by_agent(weights), state.target_actor, recent)
