@@ -89,6 +89,8 @@ def test_resume_after_sigkill_gives_the_numbers_of_an_unbroken_run(unbroken, tin
     assert 0 < done < config.episodes // config.log_every, "the run must be killed mid-way"
     assert main(["train", "--resume", str(out)]) == 0
     assert TIMELESS(read_metrics(out / "metrics.csv")) == TIMELESS(reference.metrics)
+    seeds = [line.split(",")[0] for line in (out / "metrics.csv").read_text().splitlines()[1:]]
+    assert seeds == [str(s) for _ in range(config.episodes // config.log_every) for s in range(config.seeds)], "rows rewritten on resume keep integer seeds"
 
 
 def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(tiny_config, tmp_path):

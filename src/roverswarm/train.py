@@ -492,10 +492,14 @@ def write_csv(path: Path, rows: list[dict]) -> None:
     os.replace(tmp, path)
 
 
+COUNT_COLUMNS = ("seed", "episodes")
+"""Integer columns of ``metrics.csv``; kept integers when a resumed run rewrites the file."""
+
+
 def read_metrics(path: Path) -> list[dict[str, float]]:
-    """The rows of a ``metrics.csv``, as floats."""
+    """The rows of a ``metrics.csv``: ``seed`` and ``episodes`` as ints, the rest as floats."""
     with open(path, newline="") as f:
-        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+        return [{k: int(float(v)) if k in COUNT_COLUMNS else float(v) for k, v in row.items()} for row in csv.DictReader(f)]
 
 
 def plot_learning_curve(rows: list[dict[str, float]], path: Path, title: str) -> None:
