@@ -133,7 +133,9 @@ def test_a_written_back_huge_loss_is_drawn_far_more_often_after_the_re_ranking()
     before = draw(buffer, state)[0]
     hot = int(np.argmin(losses[0]))  # agent 0's least likely transition becomes its most likely
     state = buffer.set_priorities(state, jnp.full((N, 1), hot), jnp.full((N, 1), 1e36))
-    unchanged = draw(buffer, state)[0]  # ranks are lazy: nothing moves until the re-ranking
+    # ranks are lazy: nothing moves until the re-ranking (the trainer relies on it to draw all
+    # the batches between two adds at once)
+    unchanged = draw(buffer, state)[0]
     np.testing.assert_array_equal(unchanged, before)
     after, probabilities = draw(buffer, buffer.refresh(state, jnp.bool_(True)))
     share = lambda idx: np.mean(idx[:, 0] == hot)  # noqa: E731

@@ -36,7 +36,7 @@ from tensorboardX import SummaryWriter
 
 from roverswarm.algos.maddpg import ALGOS, AlgoConfig, LearnerState, act, inference_error, init_learner, update
 from roverswarm.buffers.ranked import ranked_buffer
-from roverswarm.buffers.uniform import Buffer, BufferState, Transition, importance_weights, newest_fraction, sample_recent, uniform_buffer
+from roverswarm.buffers.uniform import Buffer, BufferState, Draw, Transition, gather, importance_weights, newest_fraction, sample_recent, uniform_buffer
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, reset, step_env
 from roverswarm.env.missions import load_mission
 from roverswarm.env.scenarios import get_scenario
@@ -260,29 +260,30 @@ def collect(config: TrainConfig, params: EnvParams, actor, key: jax.Array, noise
     return transitions, episode
 
 
-def learn(config: TrainConfig, buffer: Buffer, learner: LearnerState, buffer_state: BufferState, key: jax.Array):
-    """One update of every agent of one seed from its replay; the sampled TD losses go back to it.
+def learn(config: TrainConfig, buffer: Buffer, learner: LearnerState, buffer_state: BufferState, key: jax.Array, draw: Draw):
+    """One update of every agent of one seed on the transitions of ``draw``, drawn from its
+    replay; the sampled TD losses go back to it. ``key`` draws the recent batch of inference.
 
     Info per agent [N] (the update's losses and Q; with --infer-policies the approximations'
     error before the update) or per sampling group [N * K] (what was sampled: its mean and
     max TD loss, and the fraction drawn from the newest 10% of the replay). A group with an
     empty partition gets zero weights, so it changes nothing."""
-    sample = buffer.sample(buffer_state, key)
-    weights = importance_weights(sample) if config.importance_weights else jnp.ones(sample.probabilities.shape)
-    weights = weights * (sample.population > 0)[:, None]
+    batch = gather(buffer_state, draw.indices)
+    weights = importance_weights(draw) if config.importance_weights else jnp.ones(draw.probabilities.shape)
+    weights = weights * (draw.population > 0)[:, None]
     error = recent = None
     if config.learner.infer_policies:
-        error = inference_error(config.learner, learner, sample.batch)
+        error = inference_error(config.learner, learner, batch)
         recent = sample_recent(buffer_state, jax.random.fold_in(key, 1), config.learner.infer_window, config.batch_size)
-    learner, info = update(config.learner, learner, sample.batch, weights, recent)
+    learner, info = update(config.learner, learner, batch, weights, recent)
     if error is not None:
         info["infer_error"] = error
     td_loss = info.pop("td_loss")
-    buffer_state = buffer.set_priorities(buffer_state, sample.indices, td_loss)
+    buffer_state = buffer.set_priorities(buffer_state, draw.indices, td_loss)
     info.update(
         sampled_loss=td_loss.mean(-1),
         sampled_loss_max=td_loss.max(-1),
-        sampled_newest=newest_fraction(buffer_state, sample.indices, 0.1),
+        sampled_newest=newest_fraction(buffer_state, draw.indices, 0.1),
     )
     return learner, buffer_state, info
 
@@ -306,13 +307,15 @@ def iteration(config: TrainConfig, params: EnvParams, buffer: Buffer, runner: Ru
     num_updates = config.num_envs * params.max_steps // config.update_every
 
     def do_updates(learner, buffer_state, key):
-        def one(carry, k):
+        def one(carry, xs):
             learner, buffer_state = carry
-            learner, buffer_state, info = jax.vmap(partial(learn, config, buffer))(learner, buffer_state, k)
+            learner, buffer_state, info = jax.vmap(partial(learn, config, buffer))(learner, buffer_state, *xs)
             return (learner, buffer_state), info
 
         update_keys = jax.vmap(lambda k: jax.random.split(k, num_updates), out_axes=1)(key)  # [U, S]
-        (learner, buffer_state), info = jax.lax.scan(one, (learner, buffer_state), update_keys)
+        # a draw reads nothing the updates change, so all U are drawn at once: [U, S, G, B]
+        draws = jax.vmap(jax.vmap(buffer.draw, in_axes=(None, 0)), in_axes=(0, 1), out_axes=1)(buffer_state, update_keys)
+        (learner, buffer_state), info = jax.lax.scan(one, (learner, buffer_state), (update_keys, draws))
         return learner, buffer_state, {k: _reduce(k, v, 0) for k, v in info.items()}, jnp.ones(())
 
     def skip(learner, buffer_state, key):

@@ -36,7 +36,7 @@ Between refreshes:
 * once the buffer is full, the slots overwritten since the refresh no longer hold the
   transitions that were ranked: a draw of the table that lands on one is redrawn among the
   group's fresh transitions (among all of the group's, if it has no fresh one), so their
-  old share goes to the top too. :attr:`Sample.probabilities` is always the exact
+  old share goes to the top too. :attr:`Draw.probabilities` is always the exact
   probability of the draw as made, so importance weights stay correct.
 """
 
@@ -48,7 +48,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from roverswarm.buffers.uniform import Buffer, BufferState, Sample, Transition, empty_state, gather, nth_stored, population, write
+from roverswarm.buffers.uniform import Buffer, BufferState, Draw, Transition, empty_state, nth_stored, population, write
 
 LOSS_BINS = 2**14
 """float32 bit pattern >> 17: sign-free exponent and top 6 mantissa bits, 64 bins per octave."""
@@ -258,7 +258,7 @@ def ranked_buffer(capacity: int, batch_size: int, num_agents: int, alpha: float,
         probability = beta / live_f + (1.0 - beta) * rank_part
         return index, probability
 
-    def sample(state: BufferState, key: jax.Array) -> Sample:
+    def draw(state: BufferState, key: jax.Array) -> Draw:
         extra = state.extra
         live = population(state, groups)
         if partitioned:
@@ -272,7 +272,7 @@ def ranked_buffer(capacity: int, batch_size: int, num_agents: int, alpha: float,
             state, jax.random.split(key, groups), extra.slot_sums, extra.group_sums, extra.block_cdf, shares,
             live, fresh, ring, head,
         )
-        return Sample(batch=gather(state, indices), indices=indices, probabilities=probabilities, population=live)
+        return Draw(indices, probabilities, live)
 
     def set_priorities(state: BufferState, indices: jax.Array, losses: jax.Array) -> BufferState:
         """Write back the [G, B] losses: each group's go to its agent's row."""
@@ -280,4 +280,4 @@ def ranked_buffer(capacity: int, batch_size: int, num_agents: int, alpha: float,
         loss = state.extra.loss.at[agent[:, None], indices].set(losses)
         return state.replace(extra=state.extra.replace(loss=loss))
 
-    return Buffer(capacity, batch_size, num_agents, num_policies, init, add, sample, set_priorities, refresh)
+    return Buffer(capacity, batch_size, num_agents, num_policies, init, add, draw, set_priorities, refresh)

@@ -8,11 +8,16 @@ A :class:`Buffer` is a frozen record of pure functions (Flashbax style)::
 
     init(example)                      -> BufferState   (example: one Transition, no batch axis)
     add(state, transitions [T, ...])   -> BufferState   (a ring: the oldest are overwritten)
-    sample(state, key)                 -> Sample        (G independent batches of B, one per group)
+    draw(state, key)                   -> Draw          (G independent batches of B indices, one per group)
     set_priorities(state, idx, losses) -> BufferState   (idx, losses [G, B]; no-op if uniform)
     refresh(state, due)                -> BufferState   (re-rank if ``due``; no-op if uniform)
 
-so the learner never knows which kind it has. Every agent draws its own batch, as in the
+and ``sample(state, key)`` -> :class:`Sample`, a draw with its transitions gathered, so the
+learner never knows which kind it has. A draw reads nothing that ``set_priorities`` writes
+(written-back losses count from the next ``refresh``), so the trainer draws the batches of
+all the updates between two calls of ``add`` at once, in one vectorised call; the index arithmetic
+is then done once per update, not again inside the gather of every field (XLA on CPU fuses
+cheap index arithmetic into each gather that reads it). Every agent draws its own batch, as in the
 reference MADDPG code; a batch holds all agents' data of the sampled transitions. With
 policy ensembles (``num_policies`` K > 1) every agent draws one batch per sub-policy, from
 that sub-policy's partition of the replay (:mod:`roverswarm.buffers.partitions`): group
@@ -54,6 +59,13 @@ class BufferState:
 
 
 @struct.dataclass
+class Draw:
+    indices: jax.Array  # [G, B] int32
+    probabilities: jax.Array  # [G, B], probability of drawing each index
+    population: jax.Array  # [G] int32, transitions each group draws from (M)
+
+
+@struct.dataclass
 class Sample:
     batch: Transition  # [G, B, ...]: group g's batch at [g]
     indices: jax.Array  # [G, B] int32
@@ -71,9 +83,14 @@ class Buffer:
     num_policies: int
     init: Callable[[Transition], BufferState]
     add: Callable[[BufferState, Transition], BufferState]
-    sample: Callable[[BufferState, jax.Array], Sample]
+    draw: Callable[[BufferState, jax.Array], Draw]
     set_priorities: Callable[[BufferState, jax.Array, jax.Array], BufferState]
     refresh: Callable[[BufferState, jax.Array], BufferState]
+
+    def sample(self, state: BufferState, key: jax.Array) -> Sample:
+        """A draw and its transitions."""
+        draw = self.draw(state, key)
+        return Sample(gather(state, draw.indices), draw.indices, draw.probabilities, draw.population)
 
 
 def empty_state(capacity: int, example: Transition, num_policies: int, extra: Any = None) -> BufferState:
@@ -134,9 +151,9 @@ def sample_recent(state: BufferState, key: jax.Array, window: int, batch_size: i
     return gather(state, nth_stored(state, ages))
 
 
-def importance_weights(sample: Sample) -> jax.Array:
+def importance_weights(draw: Draw | Sample) -> jax.Array:
     """[G, B] importance-sampling weights ``1 / (M * P(i))``, divided by each batch's maximum."""
-    weights = 1.0 / (jnp.maximum(sample.population, 1)[:, None] * sample.probabilities)
+    weights = 1.0 / (jnp.maximum(draw.population, 1)[:, None] * draw.probabilities)
     return weights / weights.max(axis=-1, keepdims=True)
 
 
@@ -160,7 +177,7 @@ def uniform_buffer(capacity: int, batch_size: int, num_agents: int, num_policies
     def add(state: BufferState, transitions: Transition) -> BufferState:
         return write(state, transitions)[0]
 
-    def sample(state: BufferState, key: jax.Array) -> Sample:
+    def draw(state: BufferState, key: jax.Array) -> Draw:
         counts = population(state, num_agents * num_policies)
         if state.partitions is None:
             indices = jax.random.randint(key, (num_agents, batch_size), 0, jnp.maximum(state.size, 1))
@@ -168,9 +185,9 @@ def uniform_buffer(capacity: int, batch_size: int, num_agents: int, num_policies
             ages = jax.random.randint(key, (len(counts), batch_size), 0, jnp.maximum(counts, 1)[:, None])
             indices = jax.vmap(nth_newest)(state.partitions.ring, state.partitions.head, ages)
         probabilities = jnp.ones(indices.shape) / jnp.maximum(counts, 1)[:, None]
-        return Sample(batch=gather(state, indices), indices=indices, probabilities=probabilities, population=counts)
+        return Draw(indices, probabilities, counts)
 
     def unchanged(state: BufferState, *_) -> BufferState:
         return state
 
-    return Buffer(capacity, batch_size, num_agents, num_policies, init, add, sample, unchanged, unchanged)
+    return Buffer(capacity, batch_size, num_agents, num_policies, init, add, draw, unchanged, unchanged)
