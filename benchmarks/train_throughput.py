@@ -6,7 +6,9 @@ on batches of 1024, 2x64 networks), one seed, 20 parallel environments, replay 1
 
 * ``s/1000 ep``: wall seconds of one jitted training chunk of 1000 episodes (environment,
   replay writes and samples, updates), timed after the warm-up so every chunk has all its
-  updates; the median of ``--chunks`` chunks (uniform and ranked chunks alternate).
+  updates, and with the replay filled to its capacity, as for most of a 60,000-episode run
+  (random gathers from 1e6 transitions miss the caches; a nearly empty replay hides that);
+  the median of ``--chunks`` chunks (uniform and ranked chunks alternate).
 * ``update``: the bare jitted update of all agents on a fixed batch (a chunk's worth of
   them in one ``lax.scan``), i.e. the floor the chunk cannot go below.
 * ``overhead``: ``1 - updates * update / chunk``, the share of everything else. Target <= 25%.
@@ -15,10 +17,11 @@ on batches of 1024, 2x64 networks), one seed, 20 parallel environments, replay 1
   to the uniform replay's: the median over chunks of each back-to-back pair's ratio, with
   the smallest and largest pair in brackets. Target: at most +5% (the paper reports +1.8%
   to +2.7%). Chunks vary by several percent from one to the next, so this ratio is coarse;
-* ``ranked replay work``: the same cost measured precisely, from its parts timed alone on
-  a replay of 50,000 transitions: the extra time per update of the ranked replay's sampling
-  and loss write-back over the uniform replay's, times the updates of a chunk, plus its
-  re-rankings (one per ``--refresh-every`` updates), over the uniform chunk's time.
+* ``ranked replay work``: the same cost from its parts, timed alone on a full replay, as
+  the trainer does them: the extra time per update of the ranked replay's draws (all the
+  updates of an iteration at once), gathers and loss write-back over the uniform replay's,
+  times the updates of a chunk, plus its re-rankings (one per ``--refresh-every`` updates),
+  over the uniform chunk's time.
 * ``vs reference``: the reference implementations' per-agent Python loop runs at about 90 s
   per 1000 episodes for N = 3 on this machine (one environment, one update per 100 steps,
   the reference preset); the ratio 90 / ours for N = 3 and that preset. Target >= 10x.
@@ -30,7 +33,8 @@ batches per update) and ``--infer-policies`` (each agent fits the others' polici
 each critic step).
 
 Run ``python benchmarks/train_throughput.py`` (``--quick``: N = 3 only; ``--only main`` or
-``--only extensions`` for one table; ``--preset default`` for one preset in the main table).
+``--only extensions`` for one table; ``--preset default`` or ``--algo maddpg`` for part of the
+main table).
 """
 
 from __future__ import annotations
@@ -45,7 +49,7 @@ import jax
 import jax.numpy as jnp
 
 from roverswarm.algos.maddpg import init_learner, update
-from roverswarm.buffers.uniform import Transition
+from roverswarm.buffers.uniform import Transition, gather
 from roverswarm.env.mars import ACTION_SIZE, observation_size
 from roverswarm.jaxcache import enable_compilation_cache
 from roverswarm.train import PRESETS, TrainConfig, example_transition, init_runner, make_buffer, run_chunk, validate
@@ -65,6 +69,8 @@ def chunk_seconds(configs: list[TrainConfig], chunks: int) -> list[list[float]]:
         warm_chunks = -(-config.warmup // (config.log_every * params.max_steps)) + 1
         for _ in range(warm_chunks):  # compile, and fill the replay past the warm-up
             runner, metrics = run_chunk(config, params, buffer, runner)
+        runner = runner.replace(buffer=jax.jit(jax.vmap(partial(fill, buffer)), donate_argnums=0)(runner.buffer))
+        runner, metrics = run_chunk(config, params, buffer, runner)  # a re-ranking of the full replay
         jax.block_until_ready(metrics)
         runs.append([config, params, buffer, runner])
     times = [[] for _ in configs]
@@ -76,6 +82,13 @@ def chunk_seconds(configs: list[TrainConfig], chunks: int) -> list[list[float]]:
             jax.block_until_ready(metrics)
             spent.append(time.perf_counter() - start)
     return times
+
+
+def fill(buffer, state):
+    """``state`` with copies of its newest transition added until the replay is full."""
+    newest = jax.tree.map(lambda x: x[(state.position - 1) % buffer.capacity], state.data)
+    copies = jax.tree.map(lambda x: jnp.broadcast_to(x, (buffer.capacity, *x.shape)), newest)
+    return buffer.add(state, copies)
 
 
 def paired_ratio(base: list[float], other: list[float]) -> tuple[float, float, float]:
@@ -117,29 +130,35 @@ def update_seconds(config: TrainConfig, count: int) -> float:
     return median_seconds(lambda: many(learner), repeats=3) / count
 
 
-def replay_seconds(config: TrainConfig, count: int = 200) -> tuple[float, float]:
-    """The replay's own work, timed alone: seconds per update of sampling every group's batch
-    and writing its losses back (a scan of ``count``), and seconds of one re-ranking (zero for
-    uniform replay). On a replay of 50,000 transitions with random losses, 5,000 of them
-    added since the last re-ranking."""
+def replay_seconds(config: TrainConfig, iterations: int = 20) -> tuple[float, float]:
+    """The replay's own work, timed alone as the trainer does it: seconds per update of
+    drawing the batches of an iteration's updates at once, then gathering each and writing
+    its losses back (a scan of ``iterations``), and seconds of one re-ranking (zero for
+    uniform replay). On a full replay with random losses, 5% of it added since the last
+    re-ranking."""
     params = validate(config)
     buffer = make_buffer(config, params)
-    example = example_transition(config, params)
-    stored = jax.tree.map(lambda x: jnp.broadcast_to(x, (50_000, *x.shape)), example)
-    add, refresh = jax.jit(buffer.add), jax.jit(buffer.refresh)
-    state = add(buffer.init(example), stored)
+    updates = config.num_envs * params.max_steps // config.update_every  # per iteration
+    state = jax.jit(partial(fill, buffer))(buffer.init(example_transition(config, params)))
     if state.extra is not None:
         state = state.replace(extra=state.extra.replace(loss=jax.random.uniform(jax.random.PRNGKey(1), state.extra.loss.shape)))
-    state = add(refresh(state, jnp.bool_(True)), jax.tree.map(lambda x: x[:5_000], stored))
+        state = jax.jit(buffer.refresh)(state, jnp.bool_(True))
+        state = jax.jit(buffer.add)(state, jax.tree.map(lambda x: x[: config.buffer_size // 20], state.data))
 
     @partial(jax.jit, donate_argnums=0)  # donated, as in training: the replay is never copied
     def replay_work(state, key):
-        def one(state, k):
-            sample = buffer.sample(state, k)
-            return buffer.set_priorities(state, sample.indices, jnp.ones(sample.indices.shape)), sample.batch.obs.sum()
+        def iteration(state, k):
+            draws = jax.vmap(buffer.draw, in_axes=(None, 0))(state, jax.random.split(k, updates))
 
-        state, sums = jax.lax.scan(one, state, jax.random.split(key, count))
-        return state, sums.sum()
+            def one(state, draw):
+                batch = gather(state, draw.indices)
+                total = sum(x.sum() for x in jax.tree.leaves(batch))
+                return buffer.set_priorities(state, draw.indices, jnp.ones(draw.indices.shape)), total
+
+            return jax.lax.scan(one, state, draws)
+
+        state, totals = jax.lax.scan(iteration, state, jax.random.split(key, iterations))
+        return state, totals.sum()
 
     @jax.jit
     def rerank(state):  # the new rank tables only, so the replay is not copied to an output
@@ -151,7 +170,7 @@ def replay_seconds(config: TrainConfig, count: int = 200) -> tuple[float, float]
         return total
 
     reranking = 0.0 if state.extra is None else median_seconds(lambda: rerank(state), repeats=7)
-    return median_seconds(work, repeats=7) / count, reranking
+    return median_seconds(work, repeats=7) / (iterations * updates), reranking
 
 
 def main() -> None:
@@ -161,25 +180,26 @@ def main() -> None:
     parser.add_argument("--chunks", type=int, default=3, help="timed chunks per configuration")
     parser.add_argument("--only", choices=["main", "extensions"], help="print one of the two tables")
     parser.add_argument("--preset", choices=list(PRESETS), nargs="+", default=list(PRESETS), help="presets of the main table")
+    parser.add_argument("--algo", choices=["maddpg", "ddpg"], nargs="+", default=["maddpg", "ddpg"], help="algorithms of the main table")
     args = parser.parse_args()
     enable_compilation_cache()
     rover_counts = (3,) if args.quick else tuple(args.rovers)
     chunks = args.chunks
     print(f"jax {jax.__version__} | {jax.devices()[0]} | 1 seed, 20 envs, replay 1e6\n")
     if args.only != "extensions":
-        main_table(rover_counts, chunks, args.preset)
+        main_table(rover_counts, chunks, args.preset, args.algo)
     if args.only != "main":
         extensions_table(rover_counts, chunks)
 
 
-def main_table(rover_counts: tuple[int, ...], chunks: int, presets: list[str]) -> None:
+def main_table(rover_counts: tuple[int, ...], chunks: int, presets: list[str], algos: list[str]) -> None:
     print(
         "| N | algo | preset | s/1000 ep | update (ms) | updates/1000 ep | overhead | ranked s/1000 ep | ranked vs uniform "
         "| ranked replay work per update (ms) | re-ranking (ms) | ranked replay work | vs reference |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for n in rover_counts:
-        for algo in ("maddpg", "ddpg"):
+        for algo in algos:
             for preset in presets:
                 base = PRESETS[preset]
                 config = dataclasses.replace(base, scenario=f"paper-{n}", learner=dataclasses.replace(base.learner, algo=algo))

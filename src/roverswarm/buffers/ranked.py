@@ -107,11 +107,13 @@ def _descend(sums: jax.Array, row: jax.Array, target: jax.Array) -> tuple[jax.Ar
     """In row ``row`` (of F running sums) of ``sums``: the first j with sum > target, and the
     target minus the sums before j (where the draw falls inside entry j)."""
     values = sums.reshape(-1, FAN_OUT)[row]  # [B, F]
-    # never past the row's last entry with a share (running sums differ from the level
-    # above in the last float32 bits, so the target can reach the row's total)
-    j = jnp.minimum(jnp.sum(values <= target[:, None], axis=1), jnp.argmax(values, axis=1))
-    before = jnp.where(j > 0, jnp.take_along_axis(values, jnp.maximum(j - 1, 0)[:, None], axis=1)[:, 0], 0.0)
-    return j, target - before
+    # below the row's total, so never past its last entry with a share (running sums differ
+    # from the level above in the last float32 bits, so the target can reach the total)
+    target = jnp.minimum(target, jnp.nextafter(values[:, -1], 0.0))
+    below = values <= target[:, None]
+    # the sums are non-decreasing: the largest one at most the target is the one before j
+    before = jnp.max(jnp.where(below, values, 0.0), axis=1)
+    return jnp.minimum(jnp.sum(below, axis=1), FAN_OUT - 1), target - before
 
 
 def _prefix(slot_sums: jax.Array, group_sums: jax.Array, block_cdf: jax.Array, end: jax.Array) -> jax.Array:
