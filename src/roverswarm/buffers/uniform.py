@@ -66,11 +66,8 @@ class Draw:
 
 
 @struct.dataclass
-class Sample:
-    batch: Transition  # [G, B, ...]: group g's batch at [g]
-    indices: jax.Array  # [G, B] int32
-    probabilities: jax.Array  # [G, B], probability of drawing each index
-    population: jax.Array  # [G] int32, transitions each group draws from (M)
+class Sample(Draw):
+    batch: Transition  # [G, B, ...]: group g's batch at [g], the transitions at ``indices``
 
 
 @dataclass(frozen=True)
@@ -90,7 +87,7 @@ class Buffer:
     def sample(self, state: BufferState, key: jax.Array) -> Sample:
         """A draw and its transitions."""
         draw = self.draw(state, key)
-        return Sample(gather(state, draw.indices), draw.indices, draw.probabilities, draw.population)
+        return Sample(draw.indices, draw.probabilities, draw.population, gather(state, draw.indices))
 
 
 def empty_state(capacity: int, example: Transition, num_policies: int, extra: Any = None) -> BufferState:
@@ -151,7 +148,7 @@ def sample_recent(state: BufferState, key: jax.Array, window: int, batch_size: i
     return gather(state, nth_stored(state, ages))
 
 
-def importance_weights(draw: Draw | Sample) -> jax.Array:
+def importance_weights(draw: Draw) -> jax.Array:
     """[G, B] importance-sampling weights ``1 / (M * P(i))``, divided by each batch's maximum."""
     weights = 1.0 / (jnp.maximum(draw.population, 1)[:, None] * draw.probabilities)
     return weights / weights.max(axis=-1, keepdims=True)
