@@ -85,6 +85,11 @@ def average_ranks(loss: jax.Array, valid: jax.Array) -> jax.Array:
     return jnp.where(valid, mid[bins], 0.0)
 
 
+def _unit_float(bits: jax.Array) -> jax.Array:
+    """Uniform floats in [0, 1) from the top 23 of 32 random bits, as ``jax.random.uniform``."""
+    return jax.lax.bitcast_convert_type((bits >> 9) | jnp.uint32(0x3F800000), jnp.float32) - 1.0
+
+
 def _padded(capacity: int) -> int:
     """C': the capacity rounded up to whole blocks of F^2 slots."""
     return -(-capacity // FAN_OUT**2) * FAN_OUT**2
@@ -110,10 +115,11 @@ def _descend(sums: jax.Array, row: jax.Array, target: jax.Array) -> tuple[jax.Ar
     # below the row's total, so never past its last entry with a share (running sums differ
     # from the level above in the last float32 bits, so the target can reach the total)
     target = jnp.minimum(target, jnp.nextafter(values[:, -1], 0.0))
-    below = values <= target[:, None]
-    # the sums are non-decreasing: the largest one at most the target is the one before j
-    before = jnp.max(jnp.where(below, values, 0.0), axis=1)
-    return jnp.minimum(jnp.sum(below, axis=1), FAN_OUT - 1), target - before
+    # the sums are non-decreasing, so the entries at most the target are the first j
+    j = jnp.minimum(jnp.sum(values <= target[:, None], axis=1), FAN_OUT - 1)
+    # a flat read of entry j - 1 (a reduction over the [B, F] rows costs several times more)
+    before = jnp.where(j > 0, sums[row * FAN_OUT + jnp.maximum(j - 1, 0)], 0.0)
+    return j, target - before
 
 
 def _prefix(slot_sums: jax.Array, group_sums: jax.Array, block_cdf: jax.Array, end: jax.Array) -> jax.Array:
@@ -231,11 +237,9 @@ def ranked_buffer(capacity: int, batch_size: int, num_agents: int, alpha: float,
         # top, ranked) and, rescaled, the ranked block; the second the slot within the block;
         # the third an age in the partition for the uniform and fresh parts and redraws (by
         # its 32 bits: a float32 uniform has too few values to spread over 1e6 slots evenly)
-        k_pick, k_slot, k_age = jax.random.split(key, 3)
-        pick = jax.random.uniform(k_pick, (batch_size,))
-        slot_bits = jax.random.bits(k_slot, (batch_size,), jnp.uint32)
-        within = jax.lax.bitcast_convert_type((slot_bits >> 9) | jnp.uint32(0x3F800000), jnp.float32) - 1.0
-        age_bits = jax.random.bits(k_age, (batch_size,), jnp.uint32)
+        # (one call: every call of the counter-based generator is its own loop on CPU)
+        pick_bits, slot_bits, age_bits = jax.random.bits(key, (3, batch_size), jnp.uint32)
+        pick, within = _unit_float(pick_bits), _unit_float(slot_bits)
         stored = lambda count: nth_stored(state, (age_bits % jnp.maximum(count, 1).astype(jnp.uint32)).astype(jnp.int32), ring, head)  # noqa: E731
         extra = state.extra
         top = beta + (1.0 - beta) * fresh_share  # [0, beta): uniform, [beta, top): fresh
