@@ -19,8 +19,8 @@ from roverswarm.buffers.ranked import ranked_buffer
 from roverswarm.buffers.uniform import Transition, importance_weights, sample_recent, uniform_buffer
 from test_ranked import N, transitions
 from roverswarm.cli import main
-from roverswarm.errors import RunStopped
-from roverswarm.evaluate import evaluate_run
+from roverswarm.errors import RunStopped, UserError
+from roverswarm.evaluate import evaluate_run, run_policies
 from roverswarm.train import train
 
 K = 3  # sub-policies per agent: with test_ranked's N = 2 agents, G = 6 sampling groups
@@ -248,3 +248,20 @@ def test_bad_ensemble_or_inference_input_is_one_line_and_exit_2(argv, message, c
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
 
+
+
+def test_other_seeds_partners_take_agent_i_from_seed_s_plus_i(ensemble_run, capsys):
+    """``--partners other-seeds``: seed s's policy runs agent i's sub-policies of seed (s + i) mod S,
+    compared with a slow loop over the actors' rows; a one-seed run is refused."""
+    config, learner = ensemble_run.config, ensemble_run.learner
+    policies = run_policies(config, learner, partners="other-seeds")
+    assert [p.name for p in policies] == ["maddpg agents of seeds 0/1, random sub-policies", "maddpg agents of seeds 1/0, random sub-policies"]
+    for s, policy in enumerate(policies):
+        for got, stored in zip(jax.tree.leaves(policy.weights), jax.tree.leaves(learner.actor)):
+            expected = np.stack([stored[(s + row // config.learner.ensemble) % config.seeds, row] for row in range(stored.shape[1])])
+            np.testing.assert_array_equal(np.asarray(got), expected)
+    one_seed = jax.tree.map(lambda x: x[:1], learner)
+    with pytest.raises(UserError, match="--partners other-seeds needs a run trained with --seeds >= 2, this one has 1"):
+        run_policies(dataclasses.replace(config, seeds=1), one_seed, partners="other-seeds")
+    assert main(["evaluate", str(ensemble_run.out), "--episodes", "40", "--partners", "other-seeds"]) == 0
+    assert "agents of seeds 1/0" in capsys.readouterr().out

@@ -66,6 +66,9 @@ class EvaluateCommand:
     sub_policies: Literal["random", "each"] = "random"
     """Runs with --ensemble K: `random` draws every agent's sub-policy per episode, as in
     training; `each` runs sub-policy k of all agents, for every k."""
+    partners: Literal["own", "other-seeds"] = "own"
+    """`own`: each seed's agents together; `other-seeds`: agent i of seed s beside the other
+    agents of seeds s + 1, s + 2, ... (mod seeds), partners it never trained with."""
 
 
 @dataclass(frozen=True)
@@ -179,7 +182,7 @@ def run_reproduce(cmd: ReproduceCommand) -> None:
 def run_evaluate(cmd: EvaluateCommand) -> None:
     from roverswarm.evaluate import evaluate_run
 
-    rows = evaluate_run(cmd.run, cmd.episodes, cmd.seed, cmd.sub_policies)
+    rows = evaluate_run(cmd.run, cmd.episodes, cmd.seed, cmd.sub_policies, cmd.partners)
     table = Table(title=f"{cmd.run}: {cmd.episodes} deterministic episodes, seed {cmd.seed}")
     for column in rows[0]:
         table.add_column(column.replace("_", " "), justify="left" if column == "policy" else "right", no_wrap=column == "policy")

@@ -183,15 +183,34 @@ def normalized_score(reward: float, random_reward: float, oracle_reward: float) 
 
 
 SubPolicies = Literal["random", "each"]
+Partners = Literal["own", "other-seeds"]
 
 
-def run_policies(config: TrainConfig, learner: LearnerState, sub_policies: SubPolicies = "random", seed: int = 0) -> list[Policy]:
+def seed_actor(actor, seed: int, num_agents: int, partners: Partners = "own"):
+    """The actors [N * K, ...] that seed ``seed`` of a run's actors [S, N * K, ...] plays with:
+    its own (``own``), or agent i's from seed ``(seed + i) mod S`` (``other-seeds``: partners
+    trained apart, which never saw each other during training)."""
+    if partners == "own":
+        return jax.tree.map(lambda x: x[seed], actor)
+    rows = jax.tree.leaves(actor)[0].shape[1]  # N * K
+    agent = np.arange(rows) // (rows // num_agents)
+    return jax.tree.map(lambda x: x[(seed + agent) % x.shape[0], np.arange(rows)], actor)
+
+
+def run_policies(config: TrainConfig, learner: LearnerState, sub_policies: SubPolicies = "random", seed: int = 0, partners: Partners = "own") -> list[Policy]:
     """Every seed's trained policy; with ensembles, a random sub-policy per agent and episode
-    as in training (``random``), or every sub-policy k of all agents in turn (``each``)."""
+    as in training (``random``), or every sub-policy k of all agents in turn (``each``).
+    With ``partners="other-seeds"`` every agent plays beside the other agents of other seeds
+    (:func:`seed_actor`), a test of how well a policy copes with partners it was not trained with."""
+    require(partners in ("own", "other-seeds"), f"--partners must be 'own' or 'other-seeds', got '{partners}'")
+    require(partners == "own" or config.seeds >= 2, f"--partners other-seeds needs a run trained with --seeds >= 2, this one has {config.seeds}")
+    num_agents = validate(config).num_rovers
     policies = []
     for s in range(config.seeds):
-        actor = jax.tree.map(lambda x: x[s], learner.actor)
+        actor = seed_actor(learner.actor, s, num_agents, partners)
         name = f"{config.learner.algo} seed {s}"
+        if partners == "other-seeds":
+            name = f"{config.learner.algo} agents of seeds {'/'.join(str((s + i) % config.seeds) for i in range(num_agents))}"
         if config.learner.ensemble == 1:
             policies.append(trained_policy(config.learner, actor, name))
         elif sub_policies == "random":
@@ -201,10 +220,11 @@ def run_policies(config: TrainConfig, learner: LearnerState, sub_policies: SubPo
     return policies
 
 
-def evaluate_run(out, episodes: int = 1000, seed: int = 0, sub_policies: SubPolicies = "random") -> list[dict[str, float | str]]:
+def evaluate_run(out, episodes: int = 1000, seed: int = 0, sub_policies: SubPolicies = "random", partners: Partners = "own") -> list[dict[str, float | str]]:
     """Deterministic episodes of every seed's trained policy in run folder ``out``, beside the
     random and oracle policies on the same episodes (same layouts), with the normalised score.
-    A run with policy ensembles runs as :func:`run_policies` says; the policy names say which.
+    Runs with policy ensembles, and ``partners``, work as :func:`run_policies` says; the policy
+    names say which.
 
     Returns one row per policy: ``policy``, the :meth:`EpisodeStats.summary` metrics and
     ``normalized_score``.
@@ -214,7 +234,7 @@ def evaluate_run(out, episodes: int = 1000, seed: int = 0, sub_policies: SubPoli
     config, learner = load_run(out)
     params = validate(config)
     key = jax.random.PRNGKey(seed)
-    policies = run_policies(config, learner, sub_policies, seed)
+    policies = run_policies(config, learner, sub_policies, seed, partners)
     results = {p.name: rollout(p, key, params, episodes).stats.summary() for p in (RANDOM, ORACLE, *policies)}
     low, high = results["random"]["episode_reward"], results["oracle"]["episode_reward"]
     return [
