@@ -249,7 +249,6 @@ def test_bad_ensemble_or_inference_input_is_one_line_and_exit_2(argv, message, c
     assert message in err and err.count("\n") == 1
 
 
-
 def test_other_seeds_partners_take_agent_i_from_seed_s_plus_i(ensemble_run, capsys):
     """``--partners other-seeds``: seed s's policy runs agent i's sub-policies of seed (s + i) mod S,
     compared with a slow loop over the actors' rows; a one-seed run is refused."""

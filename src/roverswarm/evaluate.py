@@ -208,9 +208,8 @@ def run_policies(config: TrainConfig, learner: LearnerState, sub_policies: SubPo
     policies = []
     for s in range(config.seeds):
         actor = seed_actor(learner.actor, s, num_agents, partners)
-        name = f"{config.learner.algo} seed {s}"
-        if partners == "other-seeds":
-            name = f"{config.learner.algo} agents of seeds {'/'.join(str((s + i) % config.seeds) for i in range(num_agents))}"
+        seeds = "/".join(str((s + i) % config.seeds) for i in range(num_agents))  # as seed_actor takes them
+        name = f"{config.learner.algo} seed {s}" if partners == "own" else f"{config.learner.algo} agents of seeds {seeds}"
         if config.learner.ensemble == 1:
             policies.append(trained_policy(config.learner, actor, name))
         elif sub_policies == "random":
