@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from roverswarm.buffers.ranked import ranked_buffer
+from roverswarm.buffers.ranked import _running_sums, ranked_buffer
 from roverswarm.buffers.uniform import Transition, importance_weights, uniform_buffer
 
 N = 2  # agents: each ranks by its own losses
@@ -111,6 +111,16 @@ def test_many_blocks_partly_filled():
     losses = distinct_losses(rng, 2500)
     expected = np.stack([reference_probabilities(l, 1.0, 0.2) for l in losses])
     assert_matches(*draw(buffer, with_losses(buffer, state, losses)), expected)
+
+
+def test_the_tables_running_sums_are_exact_and_never_decrease():
+    """A draw descends the table's rows of running sums assuming they never decrease; shares
+    of very different scales (and zeros) must keep them so, and match float64 sums."""
+    rng = np.random.default_rng(7)
+    shares = rng.choice([0.0, 1e-12, 3e-7, 0.1, 1.0], size=(3, 64, 32)) * rng.random((3, 64, 32))
+    sums = np.asarray(_running_sums(jnp.asarray(shares, jnp.float32)))
+    assert (np.diff(sums, axis=-1) >= 0).all()
+    np.testing.assert_allclose(sums, np.cumsum(shares, axis=-1), rtol=1e-6, atol=1e-12)
 
 
 def test_new_transitions_enter_at_the_top():
