@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import imageio.v2 as imageio
 import numpy as np
 import pytest
@@ -34,6 +36,10 @@ def test_render_writes_an_animation_and_its_last_frame(tmp_path):
     [
         (["render", "--scenario", "paper-9"], "unknown scenario 'paper-9'"),
         (["render", "--out", "episode.txt"], "--out must end in .gif or .mp4"),
+        (
+            ["train", "--mission", str(Path(__file__).parent.parent / "examples" / "mission.yaml"), "--scenario", "paper-2"],
+            "--scenario paper-2 and --mission: the mission file sets the layout and the number of rovers; give one of them",
+        ),
     ],
 )
 def test_bad_input_is_one_line_and_exit_code_2(argv, message, capsys, tmp_path, monkeypatch):

@@ -46,6 +46,11 @@ def with_change(change) -> dict:
     [
         (lambda d: d["pois"][0].update(position=[1.5, 0.0]), "pois[0] 'a' position: (1.5, 0) is outside the map"),
         (lambda d: d["rovers"]["start"].__setitem__(1, [0.1, 0.0]), "rovers.start[1] overlaps traps[0]"),
+        (
+            lambda d: d["pois"][0].update(position=[0.05, 0.15]),
+            "pois[0] 'a' cannot be observed without touching traps[0]: a rover (radius 0.15) within 0.1 of it would be in the crater; "
+            "move it more than 0.2 from the trap's centre",
+        ),
         (lambda d: d["rovers"]["start"].__setitem__(1, [-0.4, -0.8]), "rovers.start[1] overlaps rovers.start[0]"),
         (lambda d: d["traps"][0].update(radius=-0.1), "traps[0] radius: must be a positive number, got -0.1"),
         (lambda d: d["pois"][1].update(radius=0), "pois[1] radius: must be a positive number, got 0"),
@@ -73,6 +78,14 @@ def test_each_kind_of_bad_mission_names_the_offending_entry(change, message):
     with pytest.raises(UserError) as error:
         parse_mission(with_change(change))
     assert message in str(error.value)
+
+
+def test_a_poi_on_a_craters_rim_is_accepted_when_a_rover_can_observe_it_from_outside():
+    # trap radius 0.15 + rover radius 0.15 - observation radius 0.1: observable beyond 0.2
+    mission = parse_mission(with_change(lambda d: d["pois"][0].update(position=[0.0, 0.21])))
+    np.testing.assert_allclose(mission.params.fixed_pois[0], [0.0, 0.21])
+    with pytest.raises(UserError, match="cannot be observed"):
+        parse_mission(with_change(lambda d: d["pois"][0].update(position=[0.0, 0.19])))
 
 
 def test_a_mission_file_that_is_not_a_mapping_is_refused():

@@ -148,6 +148,10 @@ def _flat_fields(config) -> dict[str, object]:
 def run_train(cmd: TrainCommand) -> None:
     if cmd.resume is None:
         config = cmd.config
+        require(
+            config.mission is None or config.scenario == PRESETS[cmd.preset].scenario,
+            f"--scenario {config.scenario} and --mission: the mission file sets the layout and the number of rovers; give one of them",
+        )
         if config.mission is not None:  # stored absolute, so resume and evaluate work from any folder
             config = dataclasses.replace(config, mission=str(Path(config.mission).resolve()))
         require(cmd.out is not None or config.episodes <= 10_000, "give --out for runs of more than 10000 episodes, so that they can be resumed")

@@ -148,6 +148,20 @@ def _check_clear(starts: np.ndarray, traps: np.ndarray, trap_radii: np.ndarray, 
             require(gap >= 0, f"rovers.start[{i}] overlaps rovers.start[{k}]: starts must be at least {2 * rover_radius:g} apart")
 
 
+def _check_observable(names: list[str], pois: np.ndarray, observe: np.ndarray, traps: np.ndarray, trap_radii: np.ndarray, rover_radius: float) -> None:
+    """Refuse a POI that no rover can observe without touching a trap: every point within its
+    observation radius is closer to the trap's centre than trap radius + rover radius."""
+    for i, (poi, reach) in enumerate(zip(pois, observe)):
+        for j, (trap, radius) in enumerate(zip(traps, trap_radii)):
+            clear = float(radius) + rover_radius - float(reach)  # the POI must be farther than this from the trap
+            require(
+                float(np.linalg.norm(poi - trap)) > clear,
+                f"pois[{i}] '{names[i]}' cannot be observed without touching traps[{j}]: a rover (radius {rover_radius:g}) "
+                f"within {float(reach):g} of it would be in the crater; move it more than {clear:g} from the trap's centre "
+                "or give it a larger radius",
+            )
+
+
 def parse_mission(data: Any, name: str = "mission") -> Mission:
     """A :class:`Mission` from the parsed content of a mission file (raises :class:`UserError`)."""
     _fields(data, "mission file", {"rovers", "pois"}, _TOP_FIELDS - {"rovers", "pois"})
@@ -161,6 +175,7 @@ def parse_mission(data: Any, name: str = "mission") -> Mission:
     _, traps, trap_radius = _entries(data, "traps", size)
     count, starts, zone = _rovers(data, size)
     defaults = EnvParams()
+    _check_observable(poi_names, pois, observe, traps, trap_radius, defaults.rover_radius)
     if starts is not None:
         _check_clear(starts, traps, trap_radius, defaults.rover_radius)
     params = EnvParams(
