@@ -251,7 +251,7 @@ def write_report(config: ReproduceConfig, results: list[RunResult], rows: list[d
 ## Machine
 - {platform.platform()}, {os.cpu_count()} CPUs, {platform.processor() or platform.machine()}
 - {_versions()}
-- Wall time of this command: {elapsed / 60:.1f} min; training time recorded in the runs' metrics (all runs, all chunks): {training / 60:.1f} min.
+- Wall time of this command: {elapsed / 60:.1f} min (runs finished by an earlier, interrupted command not counted); training time recorded in the runs' metrics (all runs, all chunks, whichever command ran them): {training / 60:.1f} min.
 
 ## Table I: MADDPG + experience sample optimizer vs MADDPG
 
