@@ -186,15 +186,20 @@ SubPolicies = Literal["random", "each"]
 Partners = Literal["own", "other-seeds"]
 
 
+def partner_seeds(seed: int, num_agents: int, seeds: int) -> np.ndarray:
+    """[N] the seed each agent's actor comes from under ``other-seeds``: ``(seed + i) mod S``."""
+    return (seed + np.arange(num_agents)) % seeds
+
+
 def seed_actor(actor, seed: int, num_agents: int, partners: Partners = "own"):
     """The actors [N * K, ...] that seed ``seed`` of a run's actors [S, N * K, ...] plays with:
     its own (``own``), or agent i's from seed ``(seed + i) mod S`` (``other-seeds``: partners
-    trained apart, which never saw each other during training)."""
+    trained apart, which never saw each other during training; :func:`partner_seeds`)."""
     if partners == "own":
         return jax.tree.map(lambda x: x[seed], actor)
-    rows = jax.tree.leaves(actor)[0].shape[1]  # N * K
-    agent = np.arange(rows) // (rows // num_agents)
-    return jax.tree.map(lambda x: x[(seed + agent) % x.shape[0], np.arange(rows)], actor)
+    seeds, rows = jax.tree.leaves(actor)[0].shape[:2]  # S, N * K
+    source = partner_seeds(seed, num_agents, seeds)[np.arange(rows) // (rows // num_agents)]
+    return jax.tree.map(lambda x: x[source, np.arange(rows)], actor)
 
 
 def run_policies(config: TrainConfig, learner: LearnerState, sub_policies: SubPolicies = "random", seed: int = 0, partners: Partners = "own") -> list[Policy]:
@@ -208,8 +213,10 @@ def run_policies(config: TrainConfig, learner: LearnerState, sub_policies: SubPo
     policies = []
     for s in range(config.seeds):
         actor = seed_actor(learner.actor, s, num_agents, partners)
-        seeds = "/".join(str((s + i) % config.seeds) for i in range(num_agents))  # as seed_actor takes them
-        name = f"{config.learner.algo} seed {s}" if partners == "own" else f"{config.learner.algo} agents of seeds {seeds}"
+        if partners == "own":
+            name = f"{config.learner.algo} seed {s}"
+        else:
+            name = f"{config.learner.algo} agents of seeds {'/'.join(map(str, partner_seeds(s, num_agents, config.seeds)))}"
         if config.learner.ensemble == 1:
             policies.append(trained_policy(config.learner, actor, name))
         elif sub_policies == "random":
