@@ -209,20 +209,25 @@ def run_policies(config: TrainConfig, learner: LearnerState, sub_policies: SubPo
     (:func:`seed_actor`), a test of how well a policy copes with partners it was not trained with."""
     require(partners in ("own", "other-seeds"), f"--partners must be 'own' or 'other-seeds', got '{partners}'")
     require(partners == "own" or config.seeds >= 2, f"--partners other-seeds needs a run trained with --seeds >= 2, this one has {config.seeds}")
+    require(
+        partners == "own" or not (config.learner.share_parameters or config.learner.normalize_obs),
+        "--partners other-seeds needs one network and no observation normaliser per agent: this run has --share-parameters or --normalize-obs",
+    )
     num_agents = validate(config).num_rovers
     policies = []
     for s in range(config.seeds):
         actor = seed_actor(learner.actor, s, num_agents, partners)
+        norm = None if learner.obs_norm is None else jax.tree.map(lambda x: x[s], learner.obs_norm)
         if partners == "own":
             name = f"{config.learner.algo} seed {s}"
         else:
             name = f"{config.learner.algo} agents of seeds {'/'.join(map(str, partner_seeds(s, num_agents, config.seeds)))}"
         if config.learner.ensemble == 1:
-            policies.append(trained_policy(config.learner, actor, name))
+            policies.append(trained_policy(config.learner, actor, name, obs_norm=norm))
         elif sub_policies == "random":
-            policies.append(trained_policy(config.learner, actor, f"{name}, random sub-policies", seed=seed))
+            policies.append(trained_policy(config.learner, actor, f"{name}, random sub-policies", seed=seed, obs_norm=norm))
         else:
-            policies += [trained_policy(config.learner, actor, f"{name}, sub-policy {k}", k) for k in range(config.learner.ensemble)]
+            policies += [trained_policy(config.learner, actor, f"{name}, sub-policy {k}", k, obs_norm=norm) for k in range(config.learner.ensemble)]
     return policies
 
 

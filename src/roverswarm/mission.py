@@ -45,7 +45,8 @@ def load_policy(spec: str, mission: Mission, seed: int = 0) -> Policy:
     require(0 <= seed < config.seeds, f"--policy-seed must be in [0, {config.seeds}) for '{spec}', got {seed}")
     actor = jax.tree.map(lambda x: x[seed], learner.actor)
     ensemble = ", random sub-policies" if config.learner.ensemble > 1 else ""
-    return trained_policy(config.learner, actor, f"{config.learner.algo} ({Path(spec).name}, seed {seed}{ensemble})", seed=seed)
+    obs_norm = None if learner.obs_norm is None else jax.tree.map(lambda x: x[seed], learner.obs_norm)
+    return trained_policy(config.learner, actor, f"{config.learner.algo} ({Path(spec).name}, seed {seed}{ensemble})", seed=seed, obs_norm=obs_norm)
 
 
 def parse_failures(failures: list[str], params: EnvParams) -> np.ndarray:

@@ -31,7 +31,7 @@ import numpy as np
 from flax import struct
 from scipy.optimize import linear_sum_assignment
 
-from roverswarm.algos.maddpg import AlgoConfig, act
+from roverswarm.algos.maddpg import AlgoConfig, ObsNorm, act
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, EnvState, other_rovers, trap_radii
 
 Plan = Any
@@ -198,7 +198,8 @@ REFERENCE_POLICIES: dict[str, Policy] = {p.name: p for p in (RANDOM, ORACLE)}
 def _deterministic_act(config: AlgoConfig) -> ActFn:
     # one function object per learner config, so rollouts of new weights reuse the compiled code
     def act_fn(key, obs, state, plan, weights, params):
-        return act(config, weights, obs)
+        actor, obs_norm = weights
+        return act(config, actor, obs, obs_norm=obs_norm)
 
     return act_fn
 
@@ -206,7 +207,8 @@ def _deterministic_act(config: AlgoConfig) -> ActFn:
 @functools.lru_cache(maxsize=None)
 def _ensemble_act(config: AlgoConfig) -> ActFn:
     def act_fn(key, obs, state, plan, weights, params):
-        return act(config, weights, obs, plan)  # plan: this episode's sub-policy of every agent [N]
+        actor, obs_norm = weights
+        return act(config, actor, obs, plan, obs_norm)  # plan: this episode's sub-policy of every agent [N]
 
     return act_fn
 
@@ -224,10 +226,12 @@ def _sub_policy_plan(num_policies: int, sub_policy: int | None, seed: int) -> Pl
     return plan
 
 
-def trained_policy(config: AlgoConfig, actor_params, name: str = "trained", sub_policy: int | None = None, seed: int = 0) -> Policy:
-    """The deterministic policy (no exploration noise) of trained actors [N * K, ...]. With
+def trained_policy(config: AlgoConfig, actor_params, name: str = "trained", sub_policy: int | None = None, seed: int = 0, obs_norm: ObsNorm | None = None) -> Policy:
+    """The deterministic policy (no exploration noise) of trained actors [N * K, ...] (or [1, ...]
+    shared), on observations standardised by ``obs_norm`` (runs with --normalize-obs). With
     ensembles (K > 1) every agent runs sub-policy ``sub_policy``, or, if None, one drawn per
     episode as in training (by a generator seeded with ``seed``)."""
+    weights = (actor_params, obs_norm)
     if config.ensemble == 1:
-        return Policy(name, _deterministic_act(config), weights=actor_params)
-    return Policy(name, _ensemble_act(config), _sub_policy_plan(config.ensemble, sub_policy, seed), weights=actor_params)
+        return Policy(name, _deterministic_act(config), weights=weights)
+    return Policy(name, _ensemble_act(config), _sub_policy_plan(config.ensemble, sub_policy, seed), weights=weights)

@@ -34,7 +34,7 @@ from flax import serialization, struct
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from tensorboardX import SummaryWriter
 
-from roverswarm.algos.maddpg import ALGOS, AlgoConfig, LearnerState, act, inference_error, init_learner, update
+from roverswarm.algos.maddpg import ALGOS, AlgoConfig, LearnerState, act, inference_error, init_learner, observe_batch, update
 from roverswarm.buffers.ranked import ranked_buffer
 from roverswarm.buffers.uniform import Buffer, BufferState, Draw, Transition, gather, importance_weights, newest_fraction, sample_recent, uniform_buffer
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, reset, step_env
@@ -160,6 +160,15 @@ def validate(config: TrainConfig) -> EnvParams:
     )
     require(not learner.infer_policies or params.num_rovers >= 2, "--infer-policies needs at least 2 rovers: there is no other agent to infer")
     require(
+        not learner.share_parameters or (learner.ensemble == 1 and not learner.infer_policies),
+        "--share-parameters does not compose with --ensemble > 1 or --infer-policies (they need one network per agent)",
+    )
+    require(learner.actor_delay >= 1, f"--actor-delay must be >= 1, got {learner.actor_delay}")
+    for name in ("target_noise", "target_noise_clip"):
+        value = getattr(learner, name)
+        require(math.isfinite(value) and value >= 0, f"--{name.replace('_', '-')} must be a finite number >= 0, got {value}")
+    require(math.isfinite(learner.reward_scale) and learner.reward_scale > 0, f"--reward-scale must be a finite number > 0, got {learner.reward_scale}")
+    require(
         config.buffer_size >= steps,
         f"--buffer-size ({config.buffer_size}) must hold one iteration's transitions (--num-envs x episode length = {steps})",
     )
@@ -222,7 +231,7 @@ def noise_scale(config: TrainConfig, episodes: jax.Array) -> jax.Array:
     return config.noise_std + frac * (config.noise_final - config.noise_std)
 
 
-def collect(config: TrainConfig, params: EnvParams, actor, key: jax.Array, noise_std: jax.Array):
+def collect(config: TrainConfig, params: EnvParams, learner: LearnerState, key: jax.Array, noise_std: jax.Array):
     """E episodes of one seed with Gaussian exploration noise of std ``noise_std``; with
     ensembles, every agent runs one sub-policy per episode, drawn uniformly in each environment.
 
@@ -239,7 +248,7 @@ def collect(config: TrainConfig, params: EnvParams, actor, key: jax.Array, noise
     def body(carry, step_key):
         obs, state = carry
         noise = noise_std * jax.random.normal(step_key, (config.num_envs, params.num_rovers, ACTION_SIZE))
-        actions = jnp.clip(act(config.learner, actor, obs, policy) + noise, -1.0, 1.0)
+        actions = jnp.clip(act(config.learner, learner.actor, obs, policy, learner.obs_norm) + noise, -1.0, 1.0)
         next_obs, state, rewards, terminated, _, info = jax.vmap(step_env, in_axes=(0, 0, None))(state, actions, params)
         transition = Transition(
             obs=obs, actions=actions, rewards=rewards, next_obs=next_obs, terminated=terminated, policy=policy
@@ -275,7 +284,7 @@ def learn(config: TrainConfig, buffer: Buffer, learner: LearnerState, buffer_sta
     if config.learner.infer_policies:
         error = inference_error(config.learner, learner, batch)
         recent = sample_recent(buffer_state, jax.random.fold_in(key, 1), config.learner.infer_window, config.batch_size)
-    learner, info = update(config.learner, learner, batch, weights, recent)
+    learner, info = update(config.learner, learner, batch, weights, recent, jax.random.fold_in(key, 2))
     if error is not None:
         info["infer_error"] = error
     td_loss = info.pop("td_loss")
@@ -298,9 +307,10 @@ def iteration(config: TrainConfig, params: EnvParams, buffer: Buffer, runner: Ru
     keys = jax.vmap(lambda k: jax.random.split(k, 3))(runner.key)  # [S, 3, 2]
     noise_std = noise_scale(config, runner.episodes)
     transitions, episode = jax.vmap(partial(collect, config, params), in_axes=(0, 0, None))(
-        runner.learner.actor, keys[:, 0], noise_std
+        runner.learner, keys[:, 0], noise_std
     )
     flat = jax.tree.map(lambda x: x.reshape(x.shape[0], -1, *x.shape[3:]), transitions)  # [S, K, ...]
+    learner = jax.vmap(partial(observe_batch, config.learner))(runner.learner, flat.obs)
     buffer_state = jax.vmap(buffer.add)(runner.buffer, flat)
     episodes = runner.episodes + config.num_envs
     transitions_seen = episodes * params.max_steps
@@ -324,7 +334,7 @@ def iteration(config: TrainConfig, params: EnvParams, buffer: Buffer, runner: Ru
 
     # the warm-up gate is the same for every seed, so this stays a real branch under the seed vmap
     learner, buffer_state, info, updated = jax.lax.cond(
-        transitions_seen >= config.warmup, do_updates, skip, runner.learner, buffer_state, keys[:, 1]
+        transitions_seen >= config.warmup, do_updates, skip, learner, buffer_state, keys[:, 1]
     )
     updates = runner.updates + updated.astype(jnp.int32) * num_updates
     due = updates // config.refresh_every > runner.updates // config.refresh_every  # shared by all seeds

@@ -45,6 +45,29 @@ update, reads them to log how far the approximations are).
 
 A group whose batch weights are all zero (an empty partition, before its sub-policy was
 ever drawn) leaves its sub-policy's actor alone.
+
+Options for swarms (homogeneous rovers), each off by default and composable:
+
+* ``share_parameters``: one actor mu(o_i, e_i) and one critic Q(x_i, a_i, e_i) for every
+  rover, e_i the rover's one-hot index. The critic's view is ordered own-first: rover i's
+  observation and action, then the others' in index order (x_i = o_i, o_{-i}; for DDPG its
+  own only), so the same weights mean the same thing for every rover. Each update takes
+  every rover's batch: the losses below are averaged over rovers, one gradient step per
+  network, so the shared networks learn from N times the data. Parameters keep a leading
+  group axis of size 1.
+* ``twin_critics`` (TD3/MATD3): two critics per group; the target takes the smaller,
+  ``y = r_i + gamma * (1 - terminated) * min_c Q'_{i,c}(x', a')``; both fit y (losses summed);
+  the actor follows the first; the TD loss handed to the replay is the first critic's.
+* ``target_noise`` (target-policy smoothing): every target action is
+  ``clip(mu'_j(o'_j) + clip(eps, -target_noise_clip, target_noise_clip), -1, 1)``, eps ~ N(0, target_noise^2).
+* ``actor_delay`` d: the critics update every time; the actors and both target networks
+  every d-th update (the first update is one of them).
+* ``layer_norm``: LayerNorm after each hidden layer of actors and critics.
+* ``normalize_obs``: observations are standardised by a running mean and variance (one per
+  observation entry, shared by the rovers, clipped to +-10), updated from every collected
+  observation by :func:`observe_batch` and kept in the learner state (so in checkpoints);
+  actors and critics only ever see standardised observations; the replay keeps raw ones.
+* ``reward_scale``: rewards are multiplied by this before the targets (Q in scaled units).
 """
 
 from __future__ import annotations
@@ -59,17 +82,19 @@ from flax import struct
 
 from roverswarm.algos.networks import MLP, GaussianPolicy, actor_forward, critic_forward
 from roverswarm.buffers.uniform import Transition
-from roverswarm.env.mars import ACTION_SIZE
+from roverswarm.env.mars import ACTION_SIZE, other_rovers
 
 Algo = Literal["maddpg", "ddpg"]
 ALGOS: tuple[str, ...] = ("maddpg", "ddpg")
+OBS_CLIP = 10.0
+"""Standardised observations are clipped to [-OBS_CLIP, OBS_CLIP] (--normalize-obs)."""
 
 
 @dataclass(frozen=True)
 class AlgoConfig:
     """Learner hyper-parameters. Defaults are tuned to learn with continuous actions (wider
     networks, smaller learning rates than the reference code's 2x64 and 1e-2; see
-    ``roverswarm.train.REFERENCE``)."""
+    ``roverswarm.config.REFERENCE``)."""
 
     algo: Algo = "maddpg"
     """`maddpg`: centralised critics Q_i(x, a_1..a_N); `ddpg`: local critics Q_i(o_i, a_i)."""
@@ -98,26 +123,56 @@ class AlgoConfig:
     infer_window: int = 10_000
     """--infer-policies: the approximations fit batches drawn from the newest this many
     transitions of the replay, so they follow the others' current policies."""
+    share_parameters: bool = False
+    """One actor and one critic for all rovers, with the rover's one-hot index as an input and
+    the critic's view ordered own-first; every update learns from all rovers' batches.
+    Not with --ensemble > 1 or --infer-policies."""
+    twin_critics: bool = False
+    """Two critics per agent; the target takes the smaller of their estimates (TD3/MATD3)."""
+    target_noise: float = 0.0
+    """Std of the clipped Gaussian noise added to target actions (target-policy smoothing); 0 = off."""
+    target_noise_clip: float = 0.5
+    """Target-policy smoothing noise is clipped to [-this, this]."""
+    actor_delay: int = 1
+    """Critic updates per update of the actors and the target networks (TD3's delay; 1 = every time)."""
+    layer_norm: bool = False
+    """LayerNorm after every hidden layer of actors and critics."""
+    normalize_obs: bool = False
+    """Standardise observations by a running mean and variance (kept in checkpoints)."""
+    reward_scale: float = 1.0
+    """Rewards are multiplied by this before the critic's targets."""
+
+
+@struct.dataclass
+class ObsNorm:
+    """Running mean and variance of the observation entries (all rovers pooled)."""
+
+    mean: jax.Array  # [O]
+    var: jax.Array  # [O]
+    count: jax.Array  # [] float32, observations seen
 
 
 @struct.dataclass
 class LearnerState:
-    """Every agent's networks, targets and optimiser states, stacked on a leading agent axis
-    ([N * K] for the actors: sub-policy k of agent i at i * K + k)."""
+    """Every agent's networks, targets and optimiser states, stacked on a leading group axis:
+    [N * K] for the actors (sub-policy k of agent i at i * K + k), [N] for the critics; [1]
+    for both with shared parameters. Twin critics add an axis of 2 after the group axis."""
 
     actor: Any  # [N * K, ...]: sub-policy k of agent i at i * K + k
-    critic: Any  # [N, ...]
+    critic: Any  # [N, ...] or [N, 2, ...]
     target_actor: Any  # [N * K, ...]
-    target_critic: Any  # [N, ...]
+    target_critic: Any  # [N, ...] or [N, 2, ...]
     actor_opt: Any  # [N * K, ...]
     critic_opt: Any  # [N, ...]
     approx: Any = None  # [N, N, ...]: agent i's approximation of agent j's policy (inferred policies)
     approx_opt: Any = None  # [N, N, ...]
+    obs_norm: ObsNorm | None = None  # --normalize-obs
+    updates: jax.Array | None = None  # [] int32 updates so far (--actor-delay > 1)
 
 
 def networks(config: AlgoConfig) -> tuple[MLP, MLP]:
     """The (actor, critic) modules of ``config``."""
-    return MLP(config.hidden, ACTION_SIZE), MLP(config.hidden, 1)
+    return MLP(config.hidden, ACTION_SIZE, config.layer_norm), MLP(config.hidden, 1, config.layer_norm)
 
 
 def optimizers(config: AlgoConfig) -> tuple[optax.GradientTransformation, optax.GradientTransformation]:
@@ -126,12 +181,42 @@ def optimizers(config: AlgoConfig) -> tuple[optax.GradientTransformation, optax.
     return optax.chain(clip, optax.adam(config.actor_lr)), optax.chain(clip, optax.adam(config.critic_lr))
 
 
+def groups(config: AlgoConfig, num_agents: int) -> int:
+    """Critics (and actors per sub-policy) in the learner state: 1 if shared, else N."""
+    return 1 if config.share_parameters else num_agents
+
+
+def actor_inputs(config: AlgoConfig, obs: jax.Array) -> jax.Array:
+    """What the actors see of [..., N, O] observations: the observation, and with shared
+    parameters the rover's one-hot index after it ([..., N, O + N])."""
+    if not config.share_parameters:
+        return obs
+    n = obs.shape[-2]
+    return jnp.concatenate([obs, jnp.broadcast_to(jnp.eye(n, dtype=obs.dtype), (*obs.shape[:-2], n, n))], axis=-1)
+
+
 def critic_inputs(config: AlgoConfig, obs: jax.Array, actions: jax.Array, agent: jax.Array) -> jax.Array:
-    """What agent ``agent``'s critic sees: [B, N, O] observations and [B, N, A] actions -> [B, D]."""
-    if config.algo == "maddpg":
-        batch = obs.shape[0]
-        return jnp.concatenate([obs.reshape(batch, -1), actions.reshape(batch, -1)], axis=-1)
-    return jnp.concatenate([obs[:, agent], actions[:, agent]], axis=-1)
+    """What agent ``agent``'s critic sees: [B, N, O] observations and [B, N, A] actions -> [B, D].
+    Shared parameters: own-first order and the one-hot index appended."""
+    batch, n = obs.shape[:2]
+    if config.algo == "ddpg":
+        inputs = [obs[:, agent], actions[:, agent]]
+    elif config.share_parameters:
+        order = jnp.concatenate([agent[None], jnp.asarray(other_rovers(n))[agent]])
+        inputs = [obs[:, order].reshape(batch, -1), actions[:, order].reshape(batch, -1)]
+    else:
+        inputs = [obs.reshape(batch, -1), actions.reshape(batch, -1)]
+    if config.share_parameters:
+        inputs.append(jnp.broadcast_to(jax.nn.one_hot(agent, n, dtype=obs.dtype), (batch, n)))
+    return jnp.concatenate(inputs, axis=-1)
+
+
+def critic_values(config: AlgoConfig, params, inputs: jax.Array) -> jax.Array:
+    """Q [C, B] of critic inputs [B, D]: C = 2 with twin critics, else 1."""
+    _, critic_net = networks(config)
+    if config.twin_critics:
+        return jax.vmap(lambda p: critic_forward(critic_net, p, inputs))(params)
+    return critic_forward(critic_net, params, inputs)[None]
 
 
 def approximation(config: AlgoConfig) -> GaussianPolicy:
@@ -147,14 +232,23 @@ def init_learner(key: jax.Array, config: AlgoConfig, num_agents: int, obs_size: 
     obs = jnp.zeros((1, num_agents, obs_size))
     actions = jnp.zeros((1, num_agents, ACTION_SIZE))
     critic_in = critic_inputs(config, obs, actions, jnp.int32(0))
-    actor = jax.vmap(actor_net.init, in_axes=(0, None))(jax.random.split(k_actor, num_agents * config.ensemble), obs[:, 0])
-    critic = jax.vmap(critic_net.init, in_axes=(0, None))(jax.random.split(k_critic, num_agents), critic_in)
+    g = groups(config, num_agents)
+    actor = jax.vmap(actor_net.init, in_axes=(0, None))(jax.random.split(k_actor, g * config.ensemble), actor_inputs(config, obs)[:, 0])
+    critic_keys = jax.random.split(k_critic, g)
+    if config.twin_critics:
+        critic_keys = jax.vmap(lambda k: jax.random.split(k, 2))(critic_keys)
+        critic = jax.vmap(jax.vmap(critic_net.init, in_axes=(0, None)), in_axes=(0, None))(critic_keys, critic_in)
+    else:
+        critic = jax.vmap(critic_net.init, in_axes=(0, None))(critic_keys, critic_in)
     approx = approx_opt = None
     if config.infer_policies:
         keys = jax.random.split(jax.random.fold_in(key, 2), num_agents * num_agents)
         flat = jax.vmap(approximation(config).init, in_axes=(0, None))(keys, obs[:, 0])
         approx = jax.tree.map(lambda x: x.reshape(num_agents, num_agents, *x.shape[1:]), flat)
         approx_opt = jax.vmap(jax.vmap(optimizers(config)[0].init))(approx)
+    obs_norm = None
+    if config.normalize_obs:
+        obs_norm = ObsNorm(mean=jnp.zeros(obs_size), var=jnp.ones(obs_size), count=jnp.zeros(()))
     return LearnerState(
         approx=approx,
         approx_opt=approx_opt,
@@ -165,19 +259,71 @@ def init_learner(key: jax.Array, config: AlgoConfig, num_agents: int, obs_size: 
         target_critic=jax.tree.map(jnp.copy, critic),
         actor_opt=jax.vmap(actor_opt.init)(actor),
         critic_opt=jax.vmap(critic_opt.init)(critic),
+        obs_norm=obs_norm,
+        updates=jnp.zeros((), jnp.int32) if config.actor_delay > 1 else None,
     )
 
 
-def act(config: AlgoConfig, actor_params, obs: jax.Array, policy: jax.Array | None = None) -> jax.Array:
+# ----------------------------------------------------------------------------- observation normalisation
+
+
+def observe_batch(config: AlgoConfig, state: LearnerState, obs: jax.Array) -> LearnerState:
+    """With --normalize-obs, fold observations [..., O] into the running mean and variance
+    (Chan et al.'s parallel update); otherwise ``state`` unchanged."""
+    if not config.normalize_obs:
+        return state
+    norm = state.obs_norm
+    flat = obs.reshape(-1, obs.shape[-1])
+    n = jnp.asarray(flat.shape[0], jnp.float32)
+    mean, var = flat.mean(axis=0), flat.var(axis=0)
+    total = norm.count + n
+    delta = mean - norm.mean
+    new_mean = norm.mean + delta * n / total
+    m2 = norm.var * norm.count + var * n + jnp.square(delta) * norm.count * n / total
+    return state.replace(obs_norm=ObsNorm(mean=new_mean, var=m2 / total, count=total))
+
+
+def normalize(norm: ObsNorm | None, obs: jax.Array) -> jax.Array:
+    """Observations [..., O] standardised by ``norm`` and clipped to +-OBS_CLIP (unchanged if None)."""
+    if norm is None:
+        return obs
+    return jnp.clip((obs - norm.mean) / jnp.sqrt(norm.var + 1e-8), -OBS_CLIP, OBS_CLIP)
+
+
+def prepare(config: AlgoConfig, state: LearnerState, batch: Transition) -> Transition:
+    """A replay batch as the networks see it: observations standardised, rewards scaled."""
+    return batch.replace(
+        obs=normalize(state.obs_norm, batch.obs),
+        next_obs=normalize(state.obs_norm, batch.next_obs),
+        rewards=batch.rewards * config.reward_scale,
+    )
+
+
+# ----------------------------------------------------------------------------- acting
+
+
+def act(config: AlgoConfig, actor_params, obs: jax.Array, policy: jax.Array | None = None, obs_norm: ObsNorm | None = None) -> jax.Array:
     """Deterministic actions of all agents: [..., N, O] observations -> [..., N, A] actions;
-    with ensembles (K > 1), of the sub-policies ``policy`` [..., N] the agents run."""
+    with ensembles (K > 1), of the sub-policies ``policy`` [..., N] the agents run;
+    with ``obs_norm``, on observations standardised by it."""
     actor_net, _ = networks(config)
     forward = lambda p, o: actor_forward(actor_net, p, o)[0]  # noqa: E731
+    inputs = actor_inputs(config, normalize(obs_norm, obs))
+    if config.share_parameters:
+        return forward(jax.tree.map(lambda x: x[0], actor_params), inputs)
     if config.ensemble == 1:
-        return jax.vmap(forward, in_axes=(0, -2), out_axes=-2)(actor_params, obs)
+        return jax.vmap(forward, in_axes=(0, -2), out_axes=-2)(actor_params, inputs)
     params = jax.tree.map(lambda x: x.reshape(-1, config.ensemble, *x.shape[1:]), actor_params)  # [N, K, ...]
-    every = jax.vmap(jax.vmap(forward, in_axes=(0, None), out_axes=-2), in_axes=(0, -2), out_axes=-3)(params, obs)
+    every = jax.vmap(jax.vmap(forward, in_axes=(0, None), out_axes=-2), in_axes=(0, -2), out_axes=-3)(params, inputs)
     return jnp.take_along_axis(every, policy[..., None, None], axis=-2)[..., 0, :]  # [..., N, K, A] -> [..., N, A]
+
+
+def smoothed(config: AlgoConfig, actions: jax.Array, key: jax.Array | None) -> jax.Array:
+    """Target actions with target-policy smoothing noise (unchanged if --target-noise is 0)."""
+    if config.target_noise == 0:
+        return actions
+    noise = config.target_noise * jax.random.normal(key, actions.shape)
+    return jnp.clip(actions + jnp.clip(noise, -config.target_noise_clip, config.target_noise_clip), -1.0, 1.0)
 
 
 def approx_actions(config: AlgoConfig, approx, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -211,6 +357,7 @@ def inference_error(config: AlgoConfig, state: LearnerState, batch: Transition) 
     other agents' current deterministic actions (of the sub-policies they ran) on agent i's
     batch [N * K, B, ...]. For the log only: the update never calls it."""
     num_agents = state.approx["params"]["log_std"].shape[0]
+    batch = prepare(config, state, batch)
     joint = jax.tree.map(lambda x: x.reshape(num_agents, -1, *x.shape[2:]), batch)  # [N, K * B, ...]
     true = act(config, state.actor, joint.obs, joint.policy)  # [N, K * B, N, A]
     guess = jax.vmap(lambda approx, obs: approx_actions(config, approx, obs)[0])(state.approx, joint.obs)
@@ -234,13 +381,67 @@ def polyak(target, online, tau: float):
     return jax.tree.map(lambda t, o: (1.0 - tau) * t + tau * o, target, online)
 
 
+def _select(flag: jax.Array, new, old):
+    """``new`` where ``flag`` else ``old``, leaf by leaf."""
+    return jax.tree.map(lambda n, o: jnp.where(flag, n, o), new, old)
+
+
+# ----------------------------------------------------------------------------- losses of one agent
+
+
+def _td_target(config: AlgoConfig, target_critic, agent: jax.Array, batch: Transition, next_actions: jax.Array) -> jax.Array:
+    """y [B] of agent ``agent`` (eq. 6; twin critics: the smaller target estimate)."""
+    next_q = critic_values(config, target_critic, critic_inputs(config, batch.next_obs, next_actions, agent)).min(axis=0)
+    not_done = 1.0 - batch.terminated.astype(jnp.float32)
+    return jax.lax.stop_gradient(batch.rewards[:, agent] + config.gamma * not_done * next_q)
+
+
+def _critic_loss(config: AlgoConfig, critic, agent: jax.Array, batch: Transition, target: jax.Array, weights: jax.Array):
+    """(weighted mean squared TD error, summed over twin critics; (first critic's TD loss [B], its Q [B]))."""
+    q = critic_values(config, critic, critic_inputs(config, batch.obs, batch.actions, agent))  # [C, B]
+    td = jnp.square(q - target)
+    return sum(jnp.mean(weights * t) for t in td), (td[0], q[0])
+
+
+def _actor_loss(config: AlgoConfig, actor, critic, agent: jax.Array, obs: jax.Array, actions: jax.Array) -> jax.Array:
+    """Agent ``agent``'s actor loss (eq. 4) on [B, N, O] observations: the other agents'
+    actions from the replay, its own from ``actor``, judged by the (first) critic."""
+    actor_net, _ = networks(config)
+    action, pre = actor_forward(actor_net, actor, actor_inputs(config, obs)[:, agent])
+    actions = actions.at[:, agent].set(action)
+    q_pi = critic_values(config, critic, critic_inputs(config, obs, actions, agent))[0]
+    return -jnp.mean(q_pi) + config.action_penalty * jnp.mean(jnp.square(pre))
+
+
+def _apply(optimizer: optax.GradientTransformation, grads, opt_state, params):
+    updates, opt_state = optimizer.update(grads, opt_state, params)
+    return optax.apply_updates(params, updates), opt_state
+
+
+def _finish(config: AlgoConfig, state: LearnerState, actor, actor_opt, critic, critic_opt, due: jax.Array, **extra) -> LearnerState:
+    """The state after an update: new critics; new actors and soft target updates where ``due``
+    (every --actor-delay updates)."""
+    actor, actor_opt = _select(due, (actor, actor_opt), (state.actor, state.actor_opt))
+    return state.replace(
+        actor=actor,
+        critic=critic,
+        target_actor=_select(due, polyak(state.target_actor, actor, config.tau), state.target_actor),
+        target_critic=_select(due, polyak(state.target_critic, critic, config.tau), state.target_critic),
+        actor_opt=actor_opt,
+        critic_opt=critic_opt,
+        **extra,
+    )
+
+
+# ----------------------------------------------------------------------------- updates
+
+
 def _agent_update(
-    config: AlgoConfig, state: LearnerState, agent: jax.Array, batch: Transition, weights: jax.Array, target_actors, recent: Transition | None
+    config: AlgoConfig, state: LearnerState, agent: jax.Array, batch: Transition, weights: jax.Array, target_actors, recent: Transition | None, key: jax.Array, due: jax.Array
 ):
-    """One agent's update: its slice of ``state`` (its K sub-policies), its K batches
-    [K, B, ...] (one per partition), every agent's ``target_actors`` [N * K] and, with
-    inferred policies, the ``recent`` transitions its approximations fit. See the module docstring."""
-    actor_net, critic_net = networks(config)
+    """One agent's update with its own networks: its slice of ``state`` (its K sub-policies),
+    its K batches [K, B, ...] (one per partition), every agent's ``target_actors`` [N * K] and,
+    with inferred policies, the ``recent`` transitions its approximations fit. See the module docstring."""
     actor_opt, critic_opt = optimizers(config)
     joint = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), batch)  # the K batches as one [K * B, ...]
     info = {}
@@ -253,51 +454,68 @@ def _agent_update(
         next_actions = inferred.at[:, agent].set(own)
     else:
         next_actions = act(config, target_actors, joint.next_obs, joint.policy)  # [K * B, N, A]
-    next_q = critic_forward(critic_net, state.target_critic, critic_inputs(config, joint.next_obs, next_actions, agent))
-    not_done = 1.0 - joint.terminated.astype(jnp.float32)
-    target = jax.lax.stop_gradient(joint.rewards[:, agent] + config.gamma * not_done * next_q)
+    target = _td_target(config, state.target_critic, agent, joint, smoothed(config, next_actions, key))
 
-    def critic_loss(params):
-        q = critic_forward(critic_net, params, critic_inputs(config, joint.obs, joint.actions, agent))
-        td = jnp.square(q - target)
-        return jnp.mean(weights.reshape(-1) * td), (td, q)
-
-    (c_loss, (td, q)), c_grads = jax.value_and_grad(critic_loss, has_aux=True)(state.critic)
-    c_updates, critic_opt_state = critic_opt.update(c_grads, state.critic_opt, state.critic)
-    critic = optax.apply_updates(state.critic, c_updates)
-
-    def actor_loss(params, obs, actions):  # one sub-policy on its own batch (eq. 11)
-        action, pre = actor_forward(actor_net, params, obs[:, agent])
-        actions = actions.at[:, agent].set(action)
-        q_pi = critic_forward(critic_net, critic, critic_inputs(config, obs, actions, agent))
-        return -jnp.mean(q_pi) + config.action_penalty * jnp.mean(jnp.square(pre))
+    loss = lambda params: _critic_loss(config, params, agent, joint, target, weights.reshape(-1))  # noqa: E731
+    (c_loss, (td, q)), c_grads = jax.value_and_grad(loss, has_aux=True)(state.critic)
+    critic, critic_opt_state = _apply(critic_opt, c_grads, state.critic_opt, state.critic)
 
     active = (weights.max(axis=-1) > 0).astype(jnp.float32)  # [K]: sub-policies with a batch
-    scaled = lambda params, obs, actions, on: on * actor_loss(params, obs, actions)  # noqa: E731
+    scaled = lambda params, obs, actions, on: on * _actor_loss(config, params, critic, agent, obs, actions)  # noqa: E731
     a_loss, a_grads = jax.vmap(jax.value_and_grad(scaled))(state.actor, batch.obs, batch.actions, active)
-    a_updates, actor_opt_state = jax.vmap(actor_opt.update)(a_grads, state.actor_opt, state.actor)
-    actor = optax.apply_updates(state.actor, a_updates)
+    actor, actor_opt_state = jax.vmap(lambda g, o, p: _apply(actor_opt, g, o, p))(a_grads, state.actor_opt, state.actor)
 
-    new_state = LearnerState(
-        actor=actor,
-        critic=critic,
-        target_actor=polyak(state.target_actor, actor, config.tau),
-        target_critic=polyak(state.target_critic, critic, config.tau),
-        actor_opt=actor_opt_state,
-        critic_opt=critic_opt_state,
-        approx=approx,
-        approx_opt=approx_opt,
-    )
+    new_state = _finish(config, state, actor, actor_opt_state, critic, critic_opt_state, due, approx=approx, approx_opt=approx_opt)
     info.update(critic_loss=c_loss, actor_loss=a_loss.mean(), q_mean=jnp.mean(q), td_loss=td.reshape(weights.shape))
     return new_state, info
 
 
-def update(config: AlgoConfig, state: LearnerState, batch: Transition, weights: jax.Array | None = None, recent: Transition | None = None):
+def _shared_update(config: AlgoConfig, state: LearnerState, batch: Transition, weights: jax.Array, key: jax.Array, due: jax.Array):
+    """One step of the shared actor and critic on every agent's batch [N, B, ...]: each
+    agent's losses as in :func:`_agent_update`, averaged over agents."""
+    actor_opt, critic_opt = optimizers(config)
+    num_agents = batch.rewards.shape[0]
+    agents = jnp.arange(num_agents)
+    one = lambda tree: jax.tree.map(lambda x: x[0], tree)  # noqa: E731  the group axis of size 1
+    keys = jax.random.split(key, num_agents) if config.target_noise > 0 else jnp.zeros(num_agents)
+
+    def target(agent, b, k):
+        return _td_target(config, one(state.target_critic), agent, b, smoothed(config, act(config, state.target_actor, b.next_obs), k))
+
+    targets = jax.vmap(target)(agents, batch, keys)  # [N, B]
+
+    def critic_loss(params):
+        losses, aux = jax.vmap(lambda i, b, y, w: _critic_loss(config, params, i, b, y, w))(agents, batch, targets, weights)
+        return losses.mean(), (losses, aux)
+
+    (_, (c_loss, (td, q))), c_grads = jax.value_and_grad(critic_loss, has_aux=True)(one(state.critic))
+    critic, critic_opt_state = _apply(critic_opt, c_grads, one(state.critic_opt), one(state.critic))
+
+    def actor_loss(params):
+        losses = jax.vmap(lambda i, b: _actor_loss(config, params, critic, i, b.obs, b.actions))(agents, batch)
+        return losses.mean(), losses
+
+    (_, a_loss), a_grads = jax.value_and_grad(actor_loss, has_aux=True)(one(state.actor))
+    actor, actor_opt_state = _apply(actor_opt, a_grads, one(state.actor_opt), one(state.actor))
+    group = lambda tree: jax.tree.map(lambda x: x[None], tree)  # noqa: E731
+    new_state = _finish(config, state, group(actor), group(actor_opt_state), group(critic), group(critic_opt_state), due)
+    return new_state, dict(critic_loss=c_loss, actor_loss=a_loss, q_mean=q.mean(-1), td_loss=td)
+
+
+def update(
+    config: AlgoConfig,
+    state: LearnerState,
+    batch: Transition,
+    weights: jax.Array | None = None,
+    recent: Transition | None = None,
+    key: jax.Array | None = None,
+):
     """Update every agent once. ``batch`` has a leading group axis [N * K, B, ...]: agent i's
     sample from its sub-policy k's partition at i * K + k (K = 1: agent i's own sample at i);
     ``weights`` [N * K, B] are optional importance weights of the critic loss; ``recent``
     [B', ...] (required with --infer-policies) are the recent transitions every agent's
-    approximations fit before its critic step.
+    approximations fit before its critic step; ``key`` (required with --target-noise) draws
+    the smoothing noise. Batches hold raw observations and rewards (:func:`prepare` is applied here).
 
     Returns ``(state, info)`` with ``critic_loss``, ``actor_loss`` (mean over sub-policies),
     ``q_mean`` [N], with --infer-policies ``infer_loss`` [N], and the
@@ -305,15 +523,28 @@ def update(config: AlgoConfig, state: LearnerState, batch: Transition, weights: 
     """
     if config.infer_policies and recent is None:
         raise ValueError("update: --infer-policies needs the recent transitions its approximations fit")
-    groups, batch_size = batch.rewards.shape[:2]
+    if config.target_noise > 0 and key is None:
+        raise ValueError("update: --target-noise needs a key for the smoothing noise")
+    num_groups, batch_size = batch.rewards.shape[:2]
     if weights is None:
-        weights = jnp.ones((groups, batch_size))
-    by_agent = lambda tree: jax.tree.map(lambda x: x.reshape(-1, config.ensemble, *x.shape[1:]), tree)  # noqa: E731
-    flat = lambda tree: jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), tree)  # noqa: E731
-    sliced = state.replace(actor=by_agent(state.actor), target_actor=by_agent(state.target_actor), actor_opt=by_agent(state.actor_opt))
-    per_agent = jax.vmap(_agent_update, in_axes=(None, 0, 0, 0, 0, None, None))
-    num_agents = groups // config.ensemble
-    new, info = per_agent(config, sliced, jnp.arange(num_agents), by_agent(batch), by_agent(weights), state.target_actor, recent)
-    new = new.replace(actor=flat(new.actor), target_actor=flat(new.target_actor), actor_opt=flat(new.actor_opt))
-    info["td_loss"] = flat(info["td_loss"])
-    return new, info
+        weights = jnp.ones((num_groups, batch_size))
+    batch = prepare(config, state, batch)
+    recent = None if recent is None else prepare(config, state, recent)
+    due = jnp.asarray(True) if state.updates is None else state.updates % config.actor_delay == 0
+    if config.share_parameters:
+        new, info = _shared_update(config, state, batch, weights, key, due)
+    else:
+        by_agent = lambda tree: jax.tree.map(lambda x: x.reshape(-1, config.ensemble, *x.shape[1:]), tree)  # noqa: E731
+        flat = lambda tree: jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), tree)  # noqa: E731
+        sliced = state.replace(
+            actor=by_agent(state.actor), target_actor=by_agent(state.target_actor), actor_opt=by_agent(state.actor_opt), obs_norm=None, updates=None
+        )
+        num_agents = num_groups // config.ensemble
+        keys = jax.random.split(key, num_agents) if config.target_noise > 0 else jnp.zeros(num_agents)
+        per_agent = jax.vmap(_agent_update, in_axes=(None, 0, 0, 0, 0, None, None, 0, None))
+        new, info = per_agent(config, sliced, jnp.arange(num_agents), by_agent(batch), by_agent(weights), state.target_actor, recent, keys, due)
+        new = new.replace(actor=flat(new.actor), target_actor=flat(new.target_actor), actor_opt=flat(new.actor_opt))
+        info["td_loss"] = flat(info["td_loss"])
+    if state.updates is not None:
+        new = new.replace(updates=state.updates + 1)
+    return new.replace(obs_norm=state.obs_norm), info

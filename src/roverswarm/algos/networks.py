@@ -14,15 +14,20 @@ import jax.numpy as jnp
 
 
 class MLP(nn.Module):
-    """Dense ReLU layers of sizes ``hidden``, then a linear output of size ``out``."""
+    """Dense ReLU layers of sizes ``hidden``, then a linear output of size ``out``; with
+    ``layer_norm``, each hidden layer is normalised (LayerNorm) before its ReLU."""
 
     hidden: Sequence[int]
     out: int
+    layer_norm: bool = False
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         for width in self.hidden:
-            x = nn.relu(nn.Dense(width)(x))
+            x = nn.Dense(width)(x)
+            if self.layer_norm:
+                x = nn.LayerNorm()(x)
+            x = nn.relu(x)
         return nn.Dense(self.out)(x)
 
 

@@ -1,6 +1,7 @@
 """Named scenario presets: data, not code branches.
 
 ``paper-2`` .. ``paper-5`` are the paper's four experiments (N rovers, N POIs, N traps);
+``paper-6`` .. ``paper-10`` grow the same swarm further;
 ``spread-3`` is cooperative navigation without traps (comparable to MPE ``simple_spread``).
 """
 
@@ -22,17 +23,14 @@ class Scenario:
 
 
 def _paper(n: int) -> Scenario:
-    return Scenario(
-        f"paper-{n}",
-        EnvParams(num_rovers=n, num_pois=n, num_traps=n),
-        f"paper experiment: {n} rovers, {n} POIs, {n} traps",
-    )
+    what = "paper experiment" if n <= 5 else "larger swarm"
+    return Scenario(f"paper-{n}", EnvParams(num_rovers=n, num_pois=n, num_traps=n), f"{what}: {n} rovers, {n} POIs, {n} traps")
 
 
 SCENARIOS: dict[str, Scenario] = {
     s.name: s
     for s in (
-        *(_paper(n) for n in (2, 3, 4, 5)),
+        *(_paper(n) for n in range(2, 11)),
         Scenario(
             "spread-3",
             EnvParams(num_rovers=3, num_pois=3, num_traps=0),

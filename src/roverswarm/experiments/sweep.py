@@ -1,0 +1,178 @@
+"""Sweeps: train a list of learner settings on a list of scenarios, evaluate every seed, one table.
+
+A sweep file (YAML) names a starting preset, the scenarios, seeds and episodes, and the
+settings, each a set of options over the preset (the option names of `roverswarm train`,
+with underscores)::
+
+    preset: default
+    scenarios: [paper-5]
+    seeds: 2
+    episodes: 20000
+    settings:
+      default: {}
+      shared: {share_parameters: true}
+      shared-td3: {share_parameters: true, twin_critics: true, target_noise: 0.2, actor_delay: 2}
+
+Every (scenario, setting) trains in ``OUT/runs/<scenario>/<setting>`` (seeds vmapped; a
+finished run is kept, an interrupted one resumes), then every seed's policy is evaluated
+deterministically on the same 1000 episodes as the random and oracle policies
+(:func:`roverswarm.evaluate.evaluate_run`, kept in the run folder as ``evaluation.csv``).
+``OUT/sweep.csv`` and ``OUT/sweep.md`` get one row per run: every seed's normalised score,
+their minimum and mean, POIs observed, collisions and trap contacts beside the oracle's, and
+minutes of training.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+from rich.console import Console
+from rich.live import Live
+
+from roverswarm.algos.maddpg import AlgoConfig
+from roverswarm.env.scenarios import SCENARIOS
+from roverswarm.errors import UserError, require
+from roverswarm.experiments.grid import Run, Summary, run_local, status
+from roverswarm.train import METRICS, PRESETS, TrainConfig, read_metrics, validate, write_csv
+
+EVALUATION = "evaluation.csv"
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    """A sweep file and where its runs and table go."""
+
+    file: Path
+    """Sweep file (YAML): preset, scenarios, seeds, episodes and named settings (see the module docstring)."""
+    out: Path = Path("results/sweep")
+    """Output folder: runs/, sweep.csv and sweep.md."""
+    eval_episodes: int = 1000
+    """Deterministic evaluation episodes per policy (the same layouts for every policy)."""
+
+
+def with_options(base: TrainConfig, options: dict[str, object], where: str = "options") -> TrainConfig:
+    """``base`` with ``options`` (field names of :class:`TrainConfig` or its learner's
+    :class:`AlgoConfig`) replaced; :class:`UserError` naming an unknown option."""
+    train_fields = {f.name for f in dataclasses.fields(TrainConfig)} - {"learner"}
+    learner_fields = {f.name for f in dataclasses.fields(AlgoConfig)}
+    top, learner = {}, {}
+    for name, value in options.items():
+        require(
+            name in train_fields or name in learner_fields,
+            f"{where}: unknown option '{name}'; known: {', '.join(sorted(train_fields | learner_fields))}",
+        )
+        if name == "hidden":
+            value = tuple(value)  # type: ignore[arg-type]
+        (top if name in train_fields else learner)[name] = value
+    try:
+        return dataclasses.replace(base, **top, learner=dataclasses.replace(base.learner, **learner))
+    except TypeError as error:
+        raise UserError(f"{where}: {error}") from error
+
+
+def load_sweep(path: Path, out: Path) -> list[Run]:
+    """The runs of sweep file ``path`` (checked: scenarios, options, presets), with folders under ``out``."""
+    require(Path(path).is_file(), f"sweep file '{path}' does not exist")
+    try:
+        spec = yaml.safe_load(Path(path).read_text())
+    except yaml.YAMLError as error:
+        raise UserError(f"sweep file '{path}' is not valid YAML: {error}") from error
+    require(isinstance(spec, dict), f"sweep file '{path}' must hold a mapping (preset, scenarios, seeds, episodes, settings)")
+    known = {"preset", "scenarios", "seeds", "episodes", "settings"}
+    require(set(spec) <= known, f"sweep file '{path}': unknown keys {sorted(set(spec) - known)}; known: {sorted(known)}")
+    preset = spec.get("preset", "default")
+    require(preset in PRESETS, f"sweep file '{path}': preset must be one of {', '.join(PRESETS)}, got '{preset}'")
+    scenarios = spec.get("scenarios", ["paper-3"])
+    require(isinstance(scenarios, list) and scenarios, f"sweep file '{path}': scenarios must be a non-empty list")
+    for name in scenarios:
+        require(name in SCENARIOS, f"sweep file '{path}': unknown scenario '{name}'; known: {', '.join(SCENARIOS)}")
+    settings = spec.get("settings")
+    require(isinstance(settings, dict) and settings, f"sweep file '{path}': settings must map names to options")
+    base = with_options(PRESETS[preset], {k: spec[k] for k in ("seeds", "episodes") if k in spec}, f"sweep file '{path}'")
+    runs = []
+    for scenario in scenarios:
+        for name, options in settings.items():
+            require(isinstance(options, dict | None), f"sweep file '{path}': setting '{name}' must map option names to values")
+            config = with_options(dataclasses.replace(base, scenario=scenario), options or {}, f"setting '{name}'")
+            validate(config)
+            runs.append(Run(scenario, str(name), config, Path(out) / "runs" / scenario / str(name)))
+    return runs
+
+
+def evaluation(run: Run, episodes: int) -> list[dict[str, object]]:
+    """The deterministic evaluation rows of ``run`` (random, oracle, every seed), computed once
+    and kept in the run folder."""
+    from roverswarm.evaluate import evaluate_run
+
+    path = run.folder / EVALUATION
+    if path.exists():
+        with open(path, newline="") as f:
+            rows = [{k: v if k == "policy" else float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+        if int(rows[0].get("episodes", -1)) == episodes:
+            return rows
+    rows = [{**row, "episodes": episodes} for row in evaluate_run(run.folder, episodes)]
+    write_csv(path, rows)
+    return rows
+
+
+def table_row(run: Run, rows: list[dict[str, object]]) -> dict[str, object]:
+    """One row of the sweep table: every seed's score and what the swarm did, beside the oracle."""
+    by_name = {str(r["policy"]): r for r in rows}
+    seeds = [r for name, r in by_name.items() if name not in ("random", "oracle")]
+    scores = np.array([float(r["normalized_score"]) for r in seeds])
+    mean = lambda key: float(np.mean([float(r[key]) for r in seeds]))  # noqa: E731
+    minutes = sum(r["wall_seconds"] for r in read_metrics(run.folder / METRICS) if r["seed"] == 0) / 60
+    return {
+        "scenario": run.scenario,
+        "setting": run.algorithm,
+        "episodes": run.config.episodes,
+        "seeds": run.config.seeds,
+        "scores": " / ".join(f"{s:.2f}" for s in scores),
+        "min_score": float(scores.min()),
+        "mean_score": float(scores.mean()),
+        "pois_observed": mean("pois_observed"),
+        "collisions": mean("collisions"),
+        "trap_contacts": mean("trap_contacts"),
+        "oracle_trap_contacts": float(by_name["oracle"]["trap_contacts"]),
+        "train_minutes": minutes,
+    }
+
+
+def markdown(rows: list[dict[str, object]]) -> str:
+    """The sweep table in Markdown (numbers to 2 decimals)."""
+    header = list(rows[0])
+    cell = lambda v: f"{v:.2f}" if isinstance(v, float) else str(v)  # noqa: E731
+    lines = ["| " + " | ".join(h.replace("_", " ") for h in header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(cell(r[h]) for h in header) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def sweep(config: SweepConfig, live: bool = True) -> Path:
+    """Train and evaluate every run of the sweep file; write ``sweep.csv`` and ``sweep.md``
+    after each run, so a long sweep shows its results as they come. Returns ``sweep.md``."""
+    require(config.eval_episodes >= 1, f"--eval-episodes must be >= 1, got {config.eval_episodes}")
+    runs = load_sweep(config.file, config.out)
+    done = {run.name for run in runs if status(run) == "done"}
+    summary = Summary(runs, done)
+    table: list[dict[str, object]] = []
+    config.out.mkdir(parents=True, exist_ok=True)
+
+    def execute() -> None:
+        for run in runs:
+            if run.name not in done:
+                run_local([run], summary)
+            table.append(table_row(run, evaluation(run, config.eval_episodes)))
+            write_csv(config.out / "sweep.csv", table)
+            (config.out / "sweep.md").write_text(markdown(table))
+
+    if live:
+        with Live(summary, console=Console(), refresh_per_second=1):
+            execute()
+    else:
+        execute()
+    return config.out / "sweep.md"
