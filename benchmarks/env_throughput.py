@@ -31,7 +31,6 @@ import statistics
 import time
 
 import jax
-import jax.numpy as jnp
 from mpe2 import simple_spread_v3
 
 from roverswarm.env import ACTION_SIZE, EnvParams, get_scenario, reset, step, step_env
@@ -124,10 +123,7 @@ def main() -> None:
 
     enable_compilation_cache()
     device = jax.devices()[0]
-    print(
-        f"jax {jax.__version__} | device {device} "
-        f"| {os.cpu_count()} CPUs | median of {reps} timed calls\n"
-    )
+    print(f"jax {jax.__version__} | device {device} | {os.cpu_count()} CPUs | median of {reps} timed calls\n")
 
     rows = []
     for n in ROVER_COUNTS:
@@ -136,15 +132,24 @@ def main() -> None:
         for num_envs in NUM_ENVS:
             rate = roverswarm_steps_per_second(params, num_envs, reps, auto_reset=False)
             auto = roverswarm_steps_per_second(params, num_envs, reps, auto_reset=True)
-            rows.append({"n": n, "envs": num_envs, "roverswarm_steps_per_s": rate,
-                         "auto_reset_steps_per_s": auto, "mpe2_steps_per_s": mpe2_rate,
-                         "ratio": rate / mpe2_rate})
+            rows.append(
+                {
+                    "n": n,
+                    "envs": num_envs,
+                    "roverswarm_steps_per_s": rate,
+                    "auto_reset_steps_per_s": auto,
+                    "mpe2_steps_per_s": mpe2_rate,
+                    "ratio": rate / mpe2_rate,
+                }
+            )
 
     print("| N | E | roverswarm steps/s | with per-step auto-reset | mpe2 steps/s (one env) | ratio |")
     print("|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['n']} | {r['envs']} | {r['roverswarm_steps_per_s']:,.0f} "
-              f"| {r['auto_reset_steps_per_s']:,.0f} | {r['mpe2_steps_per_s']:,.0f} | {r['ratio']:,.0f}x |")
+        print(
+            f"| {r['n']} | {r['envs']} | {r['roverswarm_steps_per_s']:,.0f} "
+            f"| {r['auto_reset_steps_per_s']:,.0f} | {r['mpe2_steps_per_s']:,.0f} | {r['ratio']:,.0f}x |"
+        )
     print("\nroverswarm runs paper-N (N rovers, N POIs, N traps); mpe2 simple_spread has no traps.")
     for n in ROVER_COUNTS:
         ratio = next(r["ratio"] for r in rows if r["n"] == n and r["envs"] == max(NUM_ENVS))

@@ -48,11 +48,13 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 
-from roverswarm.algos.maddpg import init_learner, update
-from roverswarm.buffers.uniform import Transition, gather
+from roverswarm.algos.learner import init_learner
+from roverswarm.algos.maddpg import update
+from roverswarm.buffers.base import Transition, gather
 from roverswarm.env.mars import ACTION_SIZE, observation_size
 from roverswarm.jaxcache import enable_compilation_cache
-from roverswarm.train import PRESETS, TrainConfig, example_transition, init_runner, make_buffer, run_chunk, validate
+from roverswarm.config import PRESETS, TrainConfig, validate, with_options
+from roverswarm.trainer import example_transition, init_runner, run_buffer, run_chunk
 
 REFERENCE_SECONDS_N3 = 90.0
 
@@ -64,7 +66,7 @@ def chunk_seconds(configs: list[TrainConfig], chunks: int) -> list[list[float]]:
     runs = []
     for config in configs:
         params = validate(config)
-        buffer = make_buffer(config, params)
+        buffer = run_buffer(config, params)
         runner = init_runner(config, params, buffer)
         warm_chunks = -(-config.warmup // (config.log_every * params.max_steps)) + 1
         for _ in range(warm_chunks):  # compile, and fill the replay past the warm-up
@@ -112,7 +114,7 @@ def median_seconds(run, repeats: int) -> float:
 def update_seconds(config: TrainConfig, count: int) -> float:
     """Seconds of one bare update of all agents (median over repeats of ``count`` scanned updates)."""
     params = validate(config)
-    n, o, b = params.num_rovers, observation_size(params), config.batch_size
+    n, o, b = params.num_rovers, observation_size(params), config.buffer.batch_size
     key = jax.random.PRNGKey(0)
     learner = init_learner(key, config.learner, n, o)
     batch = Transition(
@@ -125,7 +127,9 @@ def update_seconds(config: TrainConfig, count: int) -> float:
 
     @jax.jit
     def many(learner):
-        return jax.lax.scan(lambda s, _: (update(config.learner, s, batch)[0], None), learner, None, length=count)[0]
+        return jax.lax.scan(
+            lambda s, _: (update(config.learner, s, batch, key=key)[0], None), learner, None, length=count
+        )[0]
 
     return median_seconds(lambda: many(learner), repeats=3) / count
 
@@ -137,13 +141,15 @@ def replay_seconds(config: TrainConfig, iterations: int = 20) -> tuple[float, fl
     uniform replay). On a full replay with random losses, 5% of it added since the last
     re-ranking."""
     params = validate(config)
-    buffer = make_buffer(config, params)
+    buffer = run_buffer(config, params)
     updates = config.num_envs * params.max_steps // config.update_every  # per iteration
     state = jax.jit(partial(fill, buffer))(buffer.init(example_transition(config, params)))
     if state.extra is not None:
-        state = state.replace(extra=state.extra.replace(loss=jax.random.uniform(jax.random.PRNGKey(1), state.extra.loss.shape)))
+        state = state.replace(
+            extra=state.extra.replace(loss=jax.random.uniform(jax.random.PRNGKey(1), state.extra.loss.shape))
+        )
         state = jax.jit(buffer.refresh)(state, jnp.bool_(True))
-        state = jax.jit(buffer.add)(state, jax.tree.map(lambda x: x[: config.buffer_size // 20], state.data))
+        state = jax.jit(buffer.add)(state, jax.tree.map(lambda x: x[: config.buffer.buffer_size // 20], state.data))
 
     @partial(jax.jit, donate_argnums=0)  # donated, as in training: the replay is never copied
     def replay_work(state, key):
@@ -179,8 +185,12 @@ def main() -> None:
     parser.add_argument("--rovers", type=int, nargs="+", default=[2, 3, 4, 5], help="swarm sizes N to measure")
     parser.add_argument("--chunks", type=int, default=3, help="timed chunks per configuration")
     parser.add_argument("--only", choices=["main", "extensions"], help="print one of the two tables")
-    parser.add_argument("--preset", choices=list(PRESETS), nargs="+", default=list(PRESETS), help="presets of the main table")
-    parser.add_argument("--algo", choices=["maddpg", "ddpg"], nargs="+", default=["maddpg", "ddpg"], help="algorithms of the main table")
+    parser.add_argument(
+        "--preset", choices=list(PRESETS), nargs="+", default=list(PRESETS), help="presets of the main table"
+    )
+    parser.add_argument(
+        "--algo", choices=["maddpg", "ddpg"], nargs="+", default=["maddpg", "ddpg"], help="algorithms of the main table"
+    )
     args = parser.parse_args()
     enable_compilation_cache()
     rover_counts = (3,) if args.quick else tuple(args.rovers)
@@ -202,15 +212,16 @@ def main_table(rover_counts: tuple[int, ...], chunks: int, presets: list[str], a
         for algo in algos:
             for preset in presets:
                 base = PRESETS[preset]
-                config = dataclasses.replace(base, scenario=f"paper-{n}", learner=dataclasses.replace(base.learner, algo=algo))
+                config = with_options(base, dict(scenario=f"paper-{n}", algo=algo))
                 params = validate(config)
                 updates = config.log_every * params.max_steps // config.update_every
-                uniform, ranked = chunk_seconds([config, dataclasses.replace(config, replay="ranked")], chunks)
+                ranked_config = with_options(config, dict(replay="ranked"))
+                uniform, ranked = chunk_seconds([config, ranked_config], chunks)
                 chunk = statistics.median(uniform)
                 ratio, low, high = paired_ratio(uniform, ranked)
                 per_update, _ = replay_seconds(config)
-                ranked_update, rerank = replay_seconds(dataclasses.replace(config, replay="ranked"))
-                extra = (ranked_update - per_update) * updates + rerank * updates / config.refresh_every
+                ranked_update, rerank = replay_seconds(ranked_config)
+                extra = (ranked_update - per_update) * updates + rerank * updates / config.buffer.refresh_every
                 bare = update_seconds(config, updates)
                 overhead = 1.0 - updates * bare / chunk
                 versus = f"{REFERENCE_SECONDS_N3 / chunk:.0f}x" if n == 3 and preset == "reference" else "-"
@@ -228,7 +239,7 @@ def extensions_table(rover_counts: tuple[int, ...], chunks: int) -> None:
     for n in rover_counts:
         plain = dataclasses.replace(PRESETS["default"], scenario=f"paper-{n}")
         options = [dict(ensemble=3), dict(infer_policies=True)]
-        configs = [plain] + [dataclasses.replace(plain, learner=dataclasses.replace(plain.learner, **o)) for o in options]
+        configs = [plain] + [with_options(plain, o) for o in options]
         base, ensemble, infer = chunk_seconds(configs, chunks)
         cells = [f"{statistics.median(times):.2f} | {paired_ratio(base, times)[0]:.2f}x" for times in (ensemble, infer)]
         print(f"| {n} | {statistics.median(base):.2f} | {' | '.join(cells)} |", flush=True)

@@ -19,8 +19,9 @@ def paper3():
 @pytest.fixture(scope="session")
 def tiny_config():
     """A small, fast training configuration shared by the trainer tests (one compilation)."""
-    from roverswarm.algos.maddpg import AlgoConfig
-    from roverswarm.train import TrainConfig
+    from roverswarm.algos.learner import AlgoConfig
+    from roverswarm.buffers.base import ReplayConfig
+    from roverswarm.config import TrainConfig
 
     return TrainConfig(
         scenario="paper-2",
@@ -28,8 +29,7 @@ def tiny_config():
         episodes=400,
         seeds=2,
         num_envs=4,
-        batch_size=64,
-        buffer_size=4000,
+        buffer=ReplayConfig(batch_size=64, buffer_size=4000),
         warmup=500,
         log_every=100,
         checkpoint_every=1,

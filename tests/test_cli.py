@@ -34,10 +34,16 @@ def test_render_writes_an_animation_and_its_last_frame(tmp_path):
 @pytest.mark.parametrize(
     "argv, message",
     [
-        (["render", "--scenario", "paper-9"], "unknown scenario 'paper-9'"),
+        (["render", "--scenario", "paper-11"], "unknown scenario 'paper-11'"),
         (["render", "--out", "episode.txt"], "--out must end in .gif or .mp4"),
         (
-            ["train", "--mission", str(Path(__file__).parent.parent / "examples" / "mission.yaml"), "--scenario", "paper-2"],
+            [
+                "train",
+                "--mission",
+                str(Path(__file__).parent.parent / "examples" / "mission.yaml"),
+                "--scenario",
+                "paper-2",
+            ],
             "--scenario paper-2 and --mission: the mission file sets the layout and the number of rovers; give one of them",
         ),
     ],

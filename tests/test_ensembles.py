@@ -16,12 +16,15 @@ import pytest
 from scipy import stats
 
 from roverswarm.buffers.ranked import ranked_buffer
-from roverswarm.buffers.uniform import Transition, importance_weights, sample_recent, uniform_buffer
+from roverswarm.buffers.base import Transition, importance_weights, sample_recent
+from roverswarm.buffers.uniform import uniform_buffer
 from test_ranked import N, transitions
 from roverswarm.cli import main
 from roverswarm.errors import RunStopped, UserError
-from roverswarm.evaluate import evaluate_run, run_policies
-from roverswarm.train import train
+from roverswarm.config import validate, with_options
+from roverswarm.evaluate import evaluate_run
+from roverswarm.runs import Run
+from roverswarm.trainer import init_runner, run_buffer, train
 
 K = 3  # sub-policies per agent: with test_ranked's N = 2 agents, G = 6 sampling groups
 DRAWS = 300
@@ -151,10 +154,7 @@ def test_ranked_draws_after_overwrites_report_their_probabilities(num_policies):
 @pytest.fixture(scope="module")
 def ensemble_run(tiny_config, tmp_path_factory):
     """A tiny run with two sub-policies per agent, inferred policies and the ranked replay."""
-    config = dataclasses.replace(
-        tiny_config, replay="ranked", refresh_every=10,
-        learner=dataclasses.replace(tiny_config.learner, ensemble=2, infer_policies=True),
-    )
+    config = with_options(tiny_config, dict(replay="ranked", refresh_every=10, ensemble=2, infer_policies=True))
     out = tmp_path_factory.mktemp("ensemble")
     return train(config, out=out, progress=False)
 
@@ -162,18 +162,24 @@ def ensemble_run(tiny_config, tmp_path_factory):
 def test_every_sub_policy_learns(ensemble_run):
     """Each agent's sub-policies all moved away from their initial networks (each got batches
     from its own partition), and by different amounts (they learn apart)."""
-    from roverswarm.train import init_runner, make_buffer, validate
-
     config = ensemble_run.config
     params = validate(config)
-    start = init_runner(config, params, make_buffer(config, params)).learner.actor
-    moved = np.max([np.abs(a - b).max(axis=tuple(range(2, a.ndim))) for a, b in zip(jax.tree.leaves(ensemble_run.learner.actor), jax.tree.leaves(start))], axis=0)
+    start = init_runner(config, params, run_buffer(config, params)).learner.actor
+    moved = np.max(
+        [
+            np.abs(a - b).max(axis=tuple(range(2, a.ndim)))
+            for a, b in zip(jax.tree.leaves(ensemble_run.learner.actor), jax.tree.leaves(start))
+        ],
+        axis=0,
+    )
     assert moved.shape == (config.seeds, 2 * 2)
     assert moved.min() > 1e-2, moved
     assert len(np.unique(np.round(moved, 6))) == moved.size
 
 
-@pytest.mark.parametrize("added, window, expected", [(70, 10, range(60, 70)), (30, 50, range(0, 30)), (130, 50, range(80, 130))])
+@pytest.mark.parametrize(
+    "added, window, expected", [(70, 10, range(60, 70)), (30, 50, range(0, 30)), (130, 50, range(80, 130))]
+)
 def test_recent_batches_come_uniformly_from_the_newest_window(added, window, expected):
     """The batches the approximations fit: the newest ``window`` transitions (all stored ones if
     fewer), each equally likely, also after the ring wrapped (capacity 50)."""
@@ -192,7 +198,9 @@ def test_the_inferred_policies_learn_the_other_agents(tiny_config):
     """The approximations' loss (negative log-likelihood of the others' replayed actions minus
     the entropy bonus) falls to well under half of what the first updates see, for every seed;
     the error against the others' current actions is logged and finite."""
-    config = dataclasses.replace(tiny_config, update_every=5, learner=dataclasses.replace(tiny_config.learner, infer_policies=True))
+    config = dataclasses.replace(
+        tiny_config, update_every=5, learner=dataclasses.replace(tiny_config.learner, infer_policies=True)
+    )
     result = train(config, progress=False)
     for seed in range(config.seeds):
         rows = [r for r in result.metrics if r["seed"] == seed and r["critic_loss"] > 0]
@@ -202,7 +210,7 @@ def test_the_inferred_policies_learn_the_other_agents(tiny_config):
 
 def test_ensemble_run_resumes_to_the_same_numbers(ensemble_run, tmp_path, monkeypatch):
     """Ctrl-C mid-run (partitions, sub-policies, approximations and ranks checkpointed), resume."""
-    import roverswarm.train as train_module
+    import roverswarm.trainer as train_module
 
     real = train_module.run_chunk
     calls = []
@@ -224,7 +232,10 @@ def test_ensemble_run_resumes_to_the_same_numbers(ensemble_run, tmp_path, monkey
 
 def test_evaluation_runs_random_draws_or_each_sub_policy(ensemble_run, capsys):
     drawn = evaluate_run(ensemble_run.out, episodes=40)
-    assert [r["policy"] for r in drawn][2:] == ["maddpg seed 0, random sub-policies", "maddpg seed 1, random sub-policies"]
+    assert [r["policy"] for r in drawn][2:] == [
+        "maddpg seed 0, random sub-policies",
+        "maddpg seed 1, random sub-policies",
+    ]
     each = evaluate_run(ensemble_run.out, episodes=40, sub_policies="each")
     names = [r["policy"] for r in each][2:]
     assert names == [f"maddpg seed {s}, sub-policy {k}" for s in range(2) for k in range(2)]
@@ -253,14 +264,19 @@ def test_other_seeds_partners_take_agent_i_from_seed_s_plus_i(ensemble_run, caps
     """``--partners other-seeds``: seed s's policy runs agent i's sub-policies of seed (s + i) mod S,
     compared with a slow loop over the actors' rows; a one-seed run is refused."""
     config, learner = ensemble_run.config, ensemble_run.learner
-    policies = run_policies(config, learner, partners="other-seeds")
-    assert [p.name for p in policies] == ["maddpg agents of seeds 0/1, random sub-policies", "maddpg agents of seeds 1/0, random sub-policies"]
+    policies = Run.of(config, learner).policies(partners="other-seeds")
+    assert [p.name for p in policies] == [
+        "maddpg agents of seeds 0/1, random sub-policies",
+        "maddpg agents of seeds 1/0, random sub-policies",
+    ]
     for s, policy in enumerate(policies):
         for got, stored in zip(jax.tree.leaves(policy.weights), jax.tree.leaves(learner.actor)):
-            expected = np.stack([stored[(s + row // config.learner.ensemble) % config.seeds, row] for row in range(stored.shape[1])])
+            expected = np.stack(
+                [stored[(s + row // config.learner.ensemble) % config.seeds, row] for row in range(stored.shape[1])]
+            )
             np.testing.assert_array_equal(np.asarray(got), expected)
     one_seed = jax.tree.map(lambda x: x[:1], learner)
     with pytest.raises(UserError, match="--partners other-seeds needs a run trained with --seeds >= 2, this one has 1"):
-        run_policies(dataclasses.replace(config, seeds=1), one_seed, partners="other-seeds")
+        Run.of(dataclasses.replace(config, seeds=1), one_seed).policies(partners="other-seeds")
     assert main(["evaluate", str(ensemble_run.out), "--episodes", "40", "--partners", "other-seeds"]) == 0
     assert "agents of seeds 1/0" in capsys.readouterr().out

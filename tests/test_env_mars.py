@@ -48,7 +48,9 @@ def test_one_step_matches_mpe2_simple_spread(n):
     act = rng.uniform(-1.0, 1.0, (samples, n, 2))
 
     states = jax.vmap(make_state)(pos, vel, poi, np.zeros((samples, 0, 2)))
-    obs, new, rewards, _, _, info = jax.jit(jax.vmap(step_env, in_axes=(0, 0, None)))(states, jnp.asarray(act, jnp.float32), params)
+    obs, new, rewards, _, _, info = jax.jit(jax.vmap(step_env, in_axes=(0, 0, None)))(
+        states, jnp.asarray(act, jnp.float32), params
+    )
 
     contacts_seen = 0
     for s in range(samples):
@@ -157,7 +159,9 @@ def test_truncation_at_25_steps_under_jit_vmap_and_auto_reset_keeps_final_obs(pa
     # the final observation is the true next observation; the returned one starts a new episode
     np.testing.assert_allclose(info["final_obs"], expected_obs, atol=1e-6)
     assert not np.allclose(obs[24], expected_obs[24])
-    np.testing.assert_allclose(obs[24], jax.vmap(observe, in_axes=(0, None))(jax.tree.map(lambda x: x[24], states), paper3), atol=1e-6)
+    np.testing.assert_allclose(
+        obs[24], jax.vmap(observe, in_axes=(0, None))(jax.tree.map(lambda x: x[24], states), paper3), atol=1e-6
+    )
     np.testing.assert_allclose(obs[23], expected_obs[23], atol=1e-6)
 
 
@@ -194,8 +198,8 @@ def test_same_key_same_episode_different_key_different_episode(paper3):
 
 
 def test_unknown_preset_names_the_choices():
-    with pytest.raises(UserError, match="unknown scenario 'paper-9'.*paper-2.*spread-3"):
-        get_scenario("paper-9")
+    with pytest.raises(UserError, match="unknown scenario 'paper-11'.*paper-2.*spread-3"):
+        get_scenario("paper-11")
 
 
 @pytest.mark.parametrize(

@@ -19,6 +19,17 @@ policies (eq. 7-8), it checks
   an agent's approximation of itself unused).
 
 K = 1 without inference is plain MADDPG: the same reference, the same code path.
+
+The swarm options are in the same reference: twin critics (the smaller target estimate, both
+critics fit it, the first one's TD loss reported), target-policy smoothing (clipped Gaussian
+noise on every target action, drawn from the update's key as the code splits it: one key per
+agent), layer norm (written out here from the LayerNorm parameters), observation
+standardisation by a given running mean and variance and reward scaling (applied to the
+batch first), and shared parameters (one actor and critic with the agent's one-hot index,
+the critic's view ordered own-first, every agent's losses averaged into one Adam step).
+Variants without the smoothing, with the larger twin estimate, or with the shared critic's
+view in global order disagree with the code; a delayed actor update leaves the actor and the
+targets alone on the off steps.
 The last tests check that the comparison discriminates: the reference with the actor step
 on the old critic, without cutting the bootstrap at termination, with the true target
 policies in place of the approximations, with the approximations fitted on the agent's own
@@ -28,13 +39,17 @@ target, disagrees with the code.
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from roverswarm.algos.maddpg import AlgoConfig, inference_error, init_learner, update
-from roverswarm.buffers.uniform import Transition
+from roverswarm.algos.learner import AlgoConfig, init_learner, observe_batch
+from roverswarm.algos.maddpg import inference_error, update
+from roverswarm.algos.normalize import ObsNorm
+from roverswarm.buffers.base import Transition
 
 N, O, A, B = 3, 20, 2, 32
 # float32; the loosest entries are Adam steps on gradients of the order of eps, where the
@@ -53,8 +68,11 @@ def assert_parameters_close(got, want):
     want = np.concatenate([np.ravel(x) for x in jax.tree.leaves(want)])
     off = ~np.isclose(got, want, **TOL)
     assert off.mean() <= 1e-3 and np.abs(got - want).max() < 1e-3, (off.sum(), np.abs(got - want).max())
+
+
 ADAM_B1, ADAM_B2, ADAM_EPS = 0.9, 0.999, 1e-8
 
+KEY = jax.random.PRNGKey(7)  # the update's key (target-policy smoothing noise)
 _rng = np.random.default_rng(1)
 RECENT = Transition(  # the recent transitions the approximations fit (a batch of 24, not B)
     obs=jnp.asarray(_rng.standard_normal((24, N, O)), jnp.float32),
@@ -68,29 +86,79 @@ RECENT = Transition(  # the recent transitions the approximations fit (a batch o
 # ----------------------------------------------------------------------------- reference
 
 
-def mlp(params, x):
-    """Dense layers Dense_0..Dense_k, ReLU on all but the last."""
+LAYER_NORM_EPS = 1e-6  # flax.linen.LayerNorm's default
+
+
+def mlp(params, x, layer_norm=False):
+    """Dense layers Dense_0..Dense_k, ReLU on all but the last; with ``layer_norm``,
+    LayerNorm_j (x - mean) / sqrt(var + eps) * scale + bias after Dense_j, before its ReLU."""
     layers = params["params"]
-    names = sorted(layers, key=lambda name: int(name.split("_")[1]))
-    for name in names[:-1]:
-        x = jnp.maximum(x @ layers[name]["kernel"] + layers[name]["bias"], 0.0)
+    names = sorted((n for n in layers if n.startswith("Dense_")), key=lambda name: int(name.split("_")[1]))
+    for j, name in enumerate(names[:-1]):
+        x = x @ layers[name]["kernel"] + layers[name]["bias"]
+        if layer_norm:
+            norm = layers[f"LayerNorm_{j}"]
+            mean = x.mean(-1, keepdims=True)
+            var = jnp.square(x - mean).mean(-1, keepdims=True)
+            x = (x - mean) / jnp.sqrt(var + LAYER_NORM_EPS) * norm["scale"] + norm["bias"]
+        x = jnp.maximum(x, 0.0)
     last = layers[names[-1]]
     return x @ last["kernel"] + last["bias"]
 
 
-def actor(params, obs):
-    """(tanh(pre), pre) for observations [B, O]."""
-    pre = mlp(params, obs)
+def one_hot(i, rows):
+    """[rows, N] copies of agent i's one-hot index."""
+    return jnp.broadcast_to(jnp.eye(N)[i], (rows, N))
+
+
+def actor(params, obs, cfg=None, i=None):
+    """(tanh(pre), pre) for observations [B, O] (of agent i: its one-hot index appended if shared)."""
+    if cfg is not None and cfg.share_parameters:
+        obs = jnp.concatenate([obs, one_hot(i, len(obs))], axis=1)
+    pre = mlp(params, obs, cfg is not None and cfg.layer_norm)
     return jnp.tanh(pre), pre
 
 
-def q_value(algo, params, obs, actions, i):
-    """Agent i's Q [B] of observations [B, N, O] and actions [B, N, A]."""
-    if algo == "maddpg":
-        inputs = jnp.concatenate([obs.reshape(len(obs), N * O), actions.reshape(len(obs), N * A)], axis=1)
+def q_values(cfg, params, obs, actions, i, global_order=False):
+    """Agent i's Q [B] of observations [B, N, O] and actions [B, N, A], one per critic (two if twin)."""
+    rows = len(obs)
+    if cfg.algo == "maddpg":
+        order = [i] + [j for j in range(N) if j != i] if cfg.share_parameters and not global_order else list(range(N))
+        inputs = jnp.concatenate([obs[:, order].reshape(rows, N * O), actions[:, order].reshape(rows, N * A)], axis=1)
     else:
         inputs = jnp.concatenate([obs[:, i], actions[:, i]], axis=1)
-    return mlp(params, inputs)[:, 0]
+    if cfg.share_parameters:
+        inputs = jnp.concatenate([inputs, one_hot(i, rows)], axis=1)
+    critics = [jax.tree.map(lambda x: x[c], params) for c in range(2)] if cfg.twin_critics else [params]
+    return [mlp(p, inputs, cfg.layer_norm)[:, 0] for p in critics]
+
+
+def q_value(algo, params, obs, actions, i):
+    """Agent i's Q [B] of a plain (per-agent, single) critic."""
+    return q_values(AlgoConfig(algo=algo), params, obs, actions, i)[0]
+
+
+def prepared(cfg, norm, batch):
+    """The batch as the networks see it: observations standardised by ``norm`` (mean, var),
+    clipped to +-10, rewards scaled."""
+    if cfg.normalize_obs:
+        mean, var = norm
+        standard = lambda x: jnp.clip((x - mean) / jnp.sqrt(var + 1e-8), -10.0, 10.0)  # noqa: E731
+        batch = batch.replace(obs=standard(batch.obs), next_obs=standard(batch.next_obs))
+    return batch.replace(rewards=batch.rewards * cfg.reward_scale)
+
+
+def smoothing(cfg, key, shape, smooth=True):
+    """Target-policy smoothing noise of ``shape`` drawn with ``key`` (zeros if off)."""
+    if cfg.target_noise == 0 or not smooth:
+        return jnp.zeros(shape)
+    return jnp.clip(cfg.target_noise * jax.random.normal(key, shape), -cfg.target_noise_clip, cfg.target_noise_clip)
+
+
+def td_target(cfg, target_critic, next_obs, next_actions, rewards, not_done, i, twin_max=False):
+    """y [B] of agent i: the smaller (``twin_max``: larger) of the target critics' estimates."""
+    estimates = jnp.stack(q_values(cfg, target_critic, next_obs, next_actions, i))
+    return rewards[:, i] + cfg.gamma * not_done * (estimates.max(0) if twin_max else estimates.min(0))
 
 
 def clip_and_adam(params, grads, clip, lr):
@@ -114,14 +182,34 @@ def gaussian(params, obs):
 
 
 def reference_update(
-    cfg, state, batch, weights, actor_on_new_critic=True, cut_bootstrap=True, true_targets=False, ignore_sub_policy=False, fit_on_sample=False
+    cfg,
+    state,
+    batch,
+    weights,
+    actor_on_new_critic=True,
+    cut_bootstrap=True,
+    true_targets=False,
+    ignore_sub_policy=False,
+    fit_on_sample=False,
+    smooth=True,
+    twin_max=False,
+    global_order=False,
 ):
     """Every agent's update, one agent at a time; results stacked on a leading [N] axis
     ([N * K] for the actors, [N * K, B] for the TD loss). ``batch`` [N * K, B, ...] holds agent
-    i's batch from sub-policy k's partition at i * K + k; the approximations fit RECENT."""
+    i's batch from sub-policy k's partition at i * K + k; the approximations fit RECENT.
+    Shared parameters: :func:`reference_shared_update`."""
+    norm = None if state.obs_norm is None else (state.obs_norm.mean, state.obs_norm.var)
+    batch = prepared(cfg, norm, batch)
+    if cfg.share_parameters:
+        return reference_shared_update(
+            cfg, state, batch, weights, actor_on_new_critic, cut_bootstrap, smooth, twin_max, global_order
+        )
+    recent = prepared(cfg, norm, RECENT)
     K = cfg.ensemble
     pick = lambda tree, i: jax.tree.map(lambda x: x[i], tree)  # noqa: E731
     soft = lambda target, online: jax.tree.map(lambda t, o: (1 - cfg.tau) * t + cfg.tau * o, target, online)  # noqa: E731
+    noise_keys = jax.random.split(KEY, N)
     results = []
     for i in range(N):
         rows = [i * K + k for k in range(K)]
@@ -138,11 +226,13 @@ def reference_update(
             for j in range(N):
                 params = pick(pick(state.approx, i), j)
 
-                fit_obs, fit_actions = (obs, actions) if fit_on_sample else (RECENT.obs, RECENT.actions)
+                fit_obs, fit_actions = (obs, actions) if fit_on_sample else (recent.obs, recent.actions)
 
                 def nll(p, j=j, fit_obs=fit_obs, fit_actions=fit_actions):
                     mean, log_std = gaussian(p, fit_obs[:, j])
-                    logp = -0.5 * ((fit_actions[:, j] - mean) / jnp.exp(log_std)) ** 2 - log_std - 0.5 * np.log(2 * np.pi)
+                    logp = (
+                        -0.5 * ((fit_actions[:, j] - mean) / jnp.exp(log_std)) ** 2 - log_std - 0.5 * np.log(2 * np.pi)
+                    )
                     entropy = jnp.sum(log_std + 0.5 * np.log(2 * np.pi * np.e))
                     return -jnp.mean(logp.sum(-1)) - cfg.infer_entropy * entropy
 
@@ -155,28 +245,33 @@ def reference_update(
         def target_action(j):
             if cfg.infer_policies and j != i and not true_targets:
                 return gaussian(approx[j], next_obs[:, j])[0]  # eq. 8: the approximation's mean
-            every = [actor(pick(state.target_actor, j * K + k), next_obs[:, j])[0] for k in range(K)]
+            every = [actor(pick(state.target_actor, j * K + k), next_obs[:, j], cfg)[0] for k in range(K)]
             return sum(jnp.where((policy[:, j] == k)[:, None], every[k], 0.0) for k in range(K))
 
         next_actions = jnp.stack([target_action(j) for j in range(N)], axis=1)
+        next_actions = jnp.clip(next_actions + smoothing(cfg, noise_keys[i], next_actions.shape, smooth), -1.0, 1.0)
         not_done = 1.0 - terminated.astype(jnp.float32) if cut_bootstrap else 1.0
-        y = rewards[:, i] + cfg.gamma * not_done * q_value(cfg.algo, pick(state.target_critic, i), next_obs, next_actions, i)
+        y = td_target(cfg, pick(state.target_critic, i), next_obs, next_actions, rewards, not_done, i, twin_max)
 
-        def td_loss(critic_params):
-            return (q_value(cfg.algo, critic_params, obs, actions, i) - y) ** 2
+        def td_losses(critic_params):
+            return [(q - y) ** 2 for q in q_values(cfg, critic_params, obs, actions, i)]
+
+        def critic_loss(critic_params):
+            return sum(jnp.mean(w * td) for td in td_losses(critic_params))
 
         old_critic = pick(state.critic, i)
-        critic_grads = jax.grad(lambda p: jnp.mean(w * td_loss(p)))(old_critic)
-        critic = clip_and_adam(old_critic, critic_grads, cfg.grad_clip, cfg.critic_lr)
+        critic = clip_and_adam(old_critic, jax.grad(critic_loss)(old_critic), cfg.grad_clip, cfg.critic_lr)
         judge = critic if actor_on_new_critic else old_critic
 
         actors, actor_losses = [], []
         for k, row in enumerate(rows):  # eq. 11: sub-policy k on its own partition's batch
 
             def actor_loss(actor_params, row=row):
-                own, pre = actor(actor_params, batch.obs[row][:, i])
+                own, pre = actor(actor_params, batch.obs[row][:, i], cfg)
                 joint = batch.actions[row].at[:, i].set(own)
-                return -jnp.mean(q_value(cfg.algo, judge, batch.obs[row], joint, i)) + cfg.action_penalty * jnp.mean(pre**2)
+                return -jnp.mean(q_values(cfg, judge, batch.obs[row], joint, i)[0]) + cfg.action_penalty * jnp.mean(
+                    pre**2
+                )
 
             old_actor = pick(state.actor, i * K + k)
             actors.append(clip_and_adam(old_actor, jax.grad(actor_loss)(old_actor), cfg.grad_clip, cfg.actor_lr))
@@ -184,8 +279,8 @@ def reference_update(
         stack = lambda trees: jax.tree.map(lambda *xs: jnp.stack(xs), *trees)  # noqa: E731
         old_targets = [pick(state.target_actor, i * K + k) for k in range(K)]
         result.update(
-            td_loss=td_loss(old_critic).reshape(K, B),
-            critic_loss=jnp.mean(w * td_loss(old_critic)),
+            td_loss=td_losses(old_critic)[0].reshape(K, B),
+            critic_loss=critic_loss(old_critic),
             actor_loss=jnp.mean(jnp.stack(actor_losses)),
             critic=critic,
             actor=stack(actors),
@@ -197,7 +292,71 @@ def reference_update(
         results.append(result)
     out = jax.tree.map(lambda *xs: jnp.stack(xs), *results)
     flat = lambda tree: jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), tree)  # noqa: E731  [N, K] -> [N * K]
-    return {**out, "td_loss": flat(out["td_loss"]), "actor": flat(out["actor"]), "target_actor": flat(out["target_actor"])}
+    return {
+        **out,
+        "td_loss": flat(out["td_loss"]),
+        "actor": flat(out["actor"]),
+        "target_actor": flat(out["target_actor"]),
+    }
+
+
+def reference_shared_update(
+    cfg, state, batch, weights, actor_on_new_critic, cut_bootstrap, smooth, twin_max, global_order
+):
+    """One shared actor and critic: agent i's losses on its own batch ``batch[i]`` (already
+    prepared) as in :func:`reference_update`, averaged over the agents, then one clipped Adam
+    step per network. Parameters keep a leading group axis of 1."""
+    one = lambda tree: jax.tree.map(lambda x: x[0], tree)  # noqa: E731
+    soft = lambda target, online: jax.tree.map(lambda t, o: (1 - cfg.tau) * t + cfg.tau * o, target, online)  # noqa: E731
+    noise_keys = jax.random.split(KEY, N)
+    w = jnp.ones((N, B)) if weights is None else weights
+    targets = []
+    for i in range(N):
+        next_obs = batch.next_obs[i]
+        next_actions = jnp.stack([actor(one(state.target_actor), next_obs[:, j], cfg, j)[0] for j in range(N)], axis=1)
+        next_actions = jnp.clip(next_actions + smoothing(cfg, noise_keys[i], next_actions.shape, smooth), -1.0, 1.0)
+        not_done = 1.0 - batch.terminated[i].astype(jnp.float32) if cut_bootstrap else 1.0
+        targets.append(
+            td_target(cfg, one(state.target_critic), next_obs, next_actions, batch.rewards[i], not_done, i, twin_max)
+        )
+
+    def td_losses(critic_params, i):
+        return [
+            (q - targets[i]) ** 2 for q in q_values(cfg, critic_params, batch.obs[i], batch.actions[i], i, global_order)
+        ]
+
+    def critic_losses(critic_params):
+        return jnp.stack([sum(jnp.mean(w[i] * td) for td in td_losses(critic_params, i)) for i in range(N)])
+
+    old_critic = one(state.critic)
+    critic = clip_and_adam(
+        old_critic, jax.grad(lambda p: critic_losses(p).mean())(old_critic), cfg.grad_clip, cfg.critic_lr
+    )
+    judge = critic if actor_on_new_critic else old_critic
+
+    def actor_losses(actor_params):
+        losses = []
+        for i in range(N):
+            own, pre = actor(actor_params, batch.obs[i][:, i], cfg, i)
+            joint = batch.actions[i].at[:, i].set(own)
+            q = q_values(cfg, judge, batch.obs[i], joint, i, global_order)[0]
+            losses.append(-jnp.mean(q) + cfg.action_penalty * jnp.mean(pre**2))
+        return jnp.stack(losses)
+
+    old_actor = one(state.actor)
+    new_actor = clip_and_adam(
+        old_actor, jax.grad(lambda p: actor_losses(p).mean())(old_actor), cfg.grad_clip, cfg.actor_lr
+    )
+    group = lambda tree: jax.tree.map(lambda x: x[None], tree)  # noqa: E731
+    return {
+        "td_loss": jnp.stack([td_losses(old_critic, i)[0] for i in range(N)]),
+        "critic_loss": critic_losses(old_critic),
+        "actor_loss": actor_losses(old_actor),
+        "critic": group(critic),
+        "actor": group(new_actor),
+        "target_critic": group(soft(one(state.target_critic), critic)),
+        "target_actor": group(soft(one(state.target_actor), new_actor)),
+    }
 
 
 # ----------------------------------------------------------------------------- fixtures
@@ -216,6 +375,21 @@ CASES = {
     "ddpg-ensemble2": dict(algo="ddpg", ensemble=2),
     "maddpg-infer": dict(algo="maddpg", infer_policies=True),
     "maddpg-ensemble2-infer": dict(algo="maddpg", ensemble=2, infer_policies=True),
+    "ddpg-twin-smoothed-weighted": dict(algo="ddpg", twin_critics=True, target_noise=0.3, weighted=True),
+    "maddpg-ensemble2-twin-smoothed-infer": dict(
+        algo="maddpg", ensemble=2, twin_critics=True, target_noise=0.3, infer_policies=True
+    ),
+    "ddpg-shared-layernorm": dict(algo="ddpg", share_parameters=True, layer_norm=True),
+    "maddpg-swarm-weighted": dict(
+        algo="maddpg",
+        share_parameters=True,
+        twin_critics=True,
+        target_noise=0.3,
+        layer_norm=True,
+        normalize_obs=True,
+        reward_scale=0.1,
+        weighted=True,
+    ),
 }
 
 
@@ -229,7 +403,12 @@ def case(request):
     K = cfg.ensemble
     rng = np.random.default_rng(0)
     state = init_learner(jax.random.PRNGKey(0), cfg, N, O)
-    state = state.replace(target_actor=perturbed(state.target_actor, rng), target_critic=perturbed(state.target_critic, rng))
+    state = state.replace(
+        target_actor=perturbed(state.target_actor, rng), target_critic=perturbed(state.target_critic, rng)
+    )
+    if cfg.normalize_obs:  # a normaliser that has seen something: every entry shifted and scaled
+        mean, var = rng.normal(0, 0.5, O).astype(np.float32), rng.uniform(0.5, 2.0, O).astype(np.float32)
+        state = state.replace(obs_norm=ObsNorm(mean=jnp.asarray(mean), var=jnp.asarray(var), count=jnp.asarray(100.0)))
     f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
     G = N * K
     policy = None
@@ -248,7 +427,7 @@ def case(request):
     )
     assert 0 < int(batch.terminated.sum()) < G * B
     weights = f32(rng.uniform(0.1, 2.0, (G, B))) if weighted else None
-    new_state, info = jax.jit(update, static_argnums=0)(cfg, state, batch, weights, RECENT)
+    new_state, info = jax.jit(update, static_argnums=0)(cfg, state, batch, weights, RECENT, KEY)
     return cfg, state, batch, weights, new_state, info, reference_update(cfg, state, batch, weights)
 
 
@@ -280,7 +459,11 @@ def test_updated_parameters_match_reference(case, network):
     assert_parameters_close(getattr(new_state, network), ref[network])
 
 
-@pytest.mark.parametrize("variant", [dict(actor_on_new_critic=False), dict(cut_bootstrap=False)], ids=["actor_on_old_critic", "no_bootstrap_cut"])
+@pytest.mark.parametrize(
+    "variant",
+    [dict(actor_on_new_critic=False), dict(cut_bootstrap=False)],
+    ids=["actor_on_old_critic", "no_bootstrap_cut"],
+)
 def test_reference_variants_are_caught(case, variant):
     cfg, state, batch, weights, new_state, info, _ = case
     wrong = reference_update(cfg, state, batch, weights, **variant)
@@ -299,7 +482,9 @@ def test_the_target_actions_are_caught(case, variant):
     """Inferred policies: the targets use the approximations; ensembles: the target sub-policy
     each agent ran in the transition. The reference without that disagrees with the code."""
     cfg, state, batch, weights, new_state, info, _ = case
-    if (not cfg.infer_policies and ("true_targets" in variant or "fit_on_sample" in variant)) or ("ignore_sub_policy" in variant and cfg.ensemble == 1):
+    if (not cfg.infer_policies and ("true_targets" in variant or "fit_on_sample" in variant)) or (
+        "ignore_sub_policy" in variant and cfg.ensemble == 1
+    ):
         pytest.skip("the variant changes nothing for this case")
     wrong = reference_update(cfg, state, batch, weights, **variant)
     assert np.abs(np.asarray(info["td_loss"]) - np.asarray(wrong["td_loss"])).max() > 1e-3
@@ -320,7 +505,9 @@ def test_inferred_policy_loss_and_error_match_reference(case):
     K = cfg.ensemble
     for i in range(N):
         obs = jnp.concatenate([batch.obs[i * K + k] for k in range(K)])
-        policy = jnp.concatenate([batch.policy[i * K + k] for k in range(K)]) if K > 1 else jnp.zeros((K * B, N), jnp.int32)
+        policy = (
+            jnp.concatenate([batch.policy[i * K + k] for k in range(K)]) if K > 1 else jnp.zeros((K * B, N), jnp.int32)
+        )
         errors = []
         for j in range(N):
             if j == i:
@@ -338,7 +525,73 @@ def test_an_empty_partition_leaves_its_sub_policy_alone(case):
     if cfg.ensemble == 1:
         pytest.skip("no partitions")
     zeroed = (jnp.ones((N * cfg.ensemble, B)) if weights is None else weights).at[1].set(0.0)
-    new_state, _ = jax.jit(update, static_argnums=0)(cfg, state, batch, zeroed, RECENT)
+    new_state, _ = jax.jit(update, static_argnums=0)(cfg, state, batch, zeroed, RECENT, KEY)
     still = jax.tree.map(lambda new, old: np.abs(new[1] - old[1]).max(), new_state.actor, state.actor)
     moved = jax.tree.map(lambda new, old: np.abs(new[0] - old[0]).max(), new_state.actor, state.actor)
     assert max(jax.tree.leaves(still)) == 0.0 and max(jax.tree.leaves(moved)) > 1e-4
+
+
+@pytest.mark.parametrize(
+    "variant",
+    [dict(smooth=False), dict(twin_max=True), dict(global_order=True)],
+    ids=["no_smoothing", "larger_twin", "global_order"],
+)
+def test_the_swarm_options_are_caught(case, variant):
+    """The reference without target smoothing, with the larger of the twin estimates, or with
+    the shared MADDPG critic's view in global order (not own-first) disagrees with the code."""
+    cfg, state, batch, weights, new_state, info, _ = case
+    if (
+        ("smooth" in variant and cfg.target_noise == 0)
+        or ("twin_max" in variant and not cfg.twin_critics)
+        or ("global_order" in variant and not (cfg.share_parameters and cfg.algo == "maddpg"))
+    ):
+        pytest.skip("the variant changes nothing for this case")
+    wrong = reference_update(cfg, state, batch, weights, **variant)
+    assert np.abs(np.asarray(info["td_loss"]) - np.asarray(wrong["td_loss"])).max() > 1e-3
+
+
+@pytest.mark.parametrize("shared", [False, True], ids=["per-agent", "shared"])
+def test_delayed_actor_updates_skip_the_actor_and_targets(shared):
+    """--actor-delay 2: the first update moves every network (as without the delay), the second
+    only the critics; the third moves the actors again."""
+    cfg = AlgoConfig(hidden=(32, 32), actor_delay=2, twin_critics=True, target_noise=0.2, share_parameters=shared)
+    rng = np.random.default_rng(3)
+    batch = Transition(
+        obs=jnp.asarray(rng.standard_normal((N, B, N, O)), jnp.float32),
+        actions=jnp.asarray(rng.uniform(-1, 1, (N, B, N, A)), jnp.float32),
+        rewards=jnp.asarray(rng.standard_normal((N, B, N)), jnp.float32),
+        next_obs=jnp.asarray(rng.standard_normal((N, B, N, O)), jnp.float32),
+        terminated=jnp.zeros((N, B), bool),
+    )
+    step = jax.jit(update, static_argnums=0)
+    states = [init_learner(jax.random.PRNGKey(0), cfg, N, O)]
+    for _ in range(3):
+        states.append(step(cfg, states[-1], batch, key=KEY)[0])
+    undelayed = step(dataclasses.replace(cfg, actor_delay=1), states[0].replace(updates=None), batch, key=KEY)[0]
+    gap = lambda a, b: max(jax.tree.leaves(jax.tree.map(lambda x, y: float(np.abs(x - y).max()), a, b)))  # noqa: E731
+    assert [int(s.updates) for s in states] == [0, 1, 2, 3]
+    for network in ("actor", "critic", "target_actor", "target_critic"):
+        assert gap(getattr(states[1], network), getattr(undelayed, network)) < 1e-6, (
+            network
+        )  # another program: rounding
+        assert gap(getattr(states[1], network), getattr(states[0], network)) > 0.0, network  # targets move by tau * lr
+    for network in ("actor", "target_actor", "target_critic", "actor_opt"):
+        assert gap(getattr(states[2], network), getattr(states[1], network)) == 0.0, network
+    assert gap(states[2].critic, states[1].critic) > 1e-4
+    assert gap(states[3].actor, states[2].actor) > 1e-4
+
+
+def test_the_observation_normaliser_matches_numpy():
+    """Two batches folded in one after the other give the mean and variance of all of them."""
+    cfg = AlgoConfig(hidden=(8,), normalize_obs=True)
+    rng = np.random.default_rng(4)
+    first = rng.normal(3.0, 2.0, (5, 7, N, O)).astype(np.float32)
+    second = rng.normal(-1.0, 0.5, (11, N, O)).astype(np.float32)
+    state = init_learner(jax.random.PRNGKey(0), cfg, N, O)
+    state = observe_batch(cfg, observe_batch(cfg, state, jnp.asarray(first)), jnp.asarray(second))
+    seen = np.concatenate([first.reshape(-1, O), second.reshape(-1, O)]).astype(np.float64)
+    np.testing.assert_allclose(state.obs_norm.mean, seen.mean(0), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(state.obs_norm.var, seen.var(0), rtol=1e-4, atol=1e-5)
+    assert float(state.obs_norm.count) == len(seen)
+    plain = init_learner(jax.random.PRNGKey(0), AlgoConfig(hidden=(8,)), N, O)
+    assert plain.obs_norm is None and observe_batch(AlgoConfig(hidden=(8,)), plain, jnp.asarray(first)) is plain

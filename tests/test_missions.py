@@ -16,7 +16,7 @@ from roverswarm.cli import main
 from roverswarm.env.mars import NEVER, EnvParams, reset, step_env
 from roverswarm.env.missions import load_mission, parse_mission
 from roverswarm.errors import UserError
-from roverswarm.evaluate import EpisodeStats, MissionStats, Rollout, rollout
+from roverswarm.rollout import EpisodeStats, MissionStats, Rollout, rollout
 from roverswarm.mission import load_policy, parse_failures, run_mission, stress_mission
 from roverswarm.policies import ORACLE, RANDOM, OraclePlan, Policy, oracle_goals
 
@@ -62,16 +62,28 @@ def with_change(change) -> dict:
         (lambda d: d.update(pois=[]), "pois: a mission needs at least one POI"),
         (lambda d: d["pois"][0].update(position=[0.1]), "pois[0] 'a' position: expected a position [x, y]"),
         (lambda d: d.update(rovers={"count": 2}), "rovers: give either 'start'"),
-        (lambda d: d.update(rovers={"count": 0, "release_zone": {"low": [0, 0], "high": [1, 1]}}), "rovers.count: must be an integer >= 1"),
-        (lambda d: d.update(rovers={"count": 2, "release_zone": {"low": [0, 0], "high": [0, 1]}}), "must be below and left of high"),
-        (lambda d: d.update(rovers={"count": 9, "release_zone": {"low": [0, 0], "high": [0.5, 0.5]}}), "9 rovers of radius 0.15 need an area"),
+        (
+            lambda d: d.update(rovers={"count": 0, "release_zone": {"low": [0, 0], "high": [1, 1]}}),
+            "rovers.count: must be an integer >= 1",
+        ),
+        (
+            lambda d: d.update(rovers={"count": 2, "release_zone": {"low": [0, 0], "high": [0, 1]}}),
+            "must be below and left of high",
+        ),
+        (
+            lambda d: d.update(rovers={"count": 9, "release_zone": {"low": [0, 0], "high": [0.5, 0.5]}}),
+            "9 rovers of radius 0.15 need an area",
+        ),
         (lambda d: d["rovers"].update(count=True), "rovers.count (True) differs from the 2 start positions"),
         (lambda d: d["pois"].__setitem__(1, [0.5, 0.5]), "pois[1]: expected a mapping"),
         (lambda d: d["pois"][1].update(name="a"), "pois[1]: the name 'a' is already used by pois[0]"),
         (lambda d: d["pois"][1].update(name=7), "pois[1] name: must be a non-empty string, got 7"),
         (lambda d: d.update(name=None), "name: must be a non-empty string, got None"),
         (lambda d: d.update(map_size=10**400), "map_size: must be a positive number"),
-        (lambda d: d["traps"][0].update(position=[0.0, float("nan")]), "traps[0] position: expected a position [x, y] of two numbers"),
+        (
+            lambda d: d["traps"][0].update(position=[0.0, float("nan")]),
+            "traps[0] position: expected a position [x, y] of two numbers",
+        ),
     ],
 )
 def test_each_kind_of_bad_mission_names_the_offending_entry(change, message):
@@ -153,8 +165,12 @@ def scripted_rollout() -> Rollout:
     observed[0, 3:, 1] = True
     observed[1, 0:, 1] = True  # episode 1: POI 1 at the start, POI 0 never
     stats = EpisodeStats(
-        reward=np.zeros(2), agent_rewards=np.zeros((2, 2)), collisions=np.array([1.0, 0.0]),
-        trap_contacts=np.array([0.0, 2.0]), coverage_distance=np.zeros(2), pois_observed=observed[:, -1].sum(-1),
+        reward=np.zeros(2),
+        agent_rewards=np.zeros((2, 2)),
+        collisions=np.array([1.0, 0.0]),
+        trap_contacts=np.array([0.0, 2.0]),
+        coverage_distance=np.zeros(2),
+        pois_observed=observed[:, -1].sum(-1),
     )
     return Rollout(stats, pos, np.zeros((2, 2, 2)), np.zeros((2, 0, 2)), observed, np.zeros((2, 4, 2)))
 
@@ -170,8 +186,15 @@ def test_mission_metrics_on_scripted_trajectories():
 
 
 def test_mission_complete_terminates_and_the_swarm_stands_still_after():
-    params = EnvParams(num_rovers=1, num_pois=1, num_traps=0, max_steps=10, terminate_on_complete=True,
-                       fixed_pois=np.array([[0.3, 0.0]]), fixed_starts=np.array([[0.0, 0.0]]))
+    params = EnvParams(
+        num_rovers=1,
+        num_pois=1,
+        num_traps=0,
+        max_steps=10,
+        terminate_on_complete=True,
+        fixed_pois=np.array([[0.3, 0.0]]),
+        fixed_starts=np.array([[0.0, 0.0]]),
+    )
     data = rollout(Policy("right", lambda *_: jnp.array([[1.0, 0.0]])), jax.random.PRNGKey(0), params, 1)
     stats = MissionStats.of(data)
     t = int(stats.time_to_all[0])
@@ -190,7 +213,9 @@ def test_a_failed_rover_never_moves_again_even_when_pushed():
     mission = load_mission(EXAMPLES / "mission.yaml")
     fail = parse_failures(["1@5", "2@0"], mission.params)
     np.testing.assert_array_equal(fail, [NEVER, 5, 0])
-    data = rollout(RANDOM, jax.random.PRNGKey(0), mission.params.replace(terminate_on_complete=False), 50, fail_step=fail)
+    data = rollout(
+        RANDOM, jax.random.PRNGKey(0), mission.params.replace(terminate_on_complete=False), 50, fail_step=fail
+    )
     pos = data.rover_pos  # [E, T + 1, N, 2]
     assert np.all(pos[:, 5:, 1] == pos[:, 5:6, 1]) and np.all(pos[:, :, 2] == pos[:, :1, 2])
     # it did move before step 5 (from step 1: the first step moves by the zero start velocity)
@@ -210,7 +235,10 @@ def test_a_failed_rover_never_moves_again_even_when_pushed():
     assert state.rover_pos[0, 0] < -0.01 and touched[0] == 1  # it still counts in contacts
 
 
-@pytest.mark.parametrize("text, message", [("1-5", "expected ROVER@STEP"), ("3@2", "rover must be in [0, 3)"), ("0@25", "step must be in [0, 25)")])
+@pytest.mark.parametrize(
+    "text, message",
+    [("1-5", "expected ROVER@STEP"), ("3@2", "rover must be in [0, 3)"), ("0@25", "step must be in [0, 25)")],
+)
 def test_bad_failures_are_refused(text, message):
     with pytest.raises(UserError, match=message.replace("[", r"\[").replace(")", r"\)")):
         parse_failures([text], load_mission(EXAMPLES / "mission.yaml").params)
@@ -234,8 +262,10 @@ def test_the_oracle_takes_over_the_poi_of_a_failed_rover():
     # two open POIs, two free rovers: one each, nearest pair first
     params4 = EnvParams(num_rovers=2, num_pois=4, num_traps=0)
     four = state.replace(
-        rover_pos=jnp.array([[0.0, 0.0], [1.0, 0.0]]), poi_pos=jnp.array([[0.0, 0.05], [1.0, 0.05], [0.1, 0.0], [0.2, 0.0]]),
-        observed=jnp.array([True, True, False, False]), fail_step=jnp.array([NEVER, NEVER], jnp.int32),
+        rover_pos=jnp.array([[0.0, 0.0], [1.0, 0.0]]),
+        poi_pos=jnp.array([[0.0, 0.05], [1.0, 0.05], [0.1, 0.0], [0.2, 0.0]]),
+        observed=jnp.array([True, True, False, False]),
+        fail_step=jnp.array([NEVER, NEVER], jnp.int32),
     )
     goals = oracle_goals(four, OraclePlan(poi=jnp.array([0, 1]), home=four.rover_pos), params4)
     np.testing.assert_allclose(goals, [[0.1, 0.0], [0.2, 0.0]])
@@ -254,17 +284,24 @@ def test_the_oracle_completes_the_example_missions(name):
 
 def test_mission_run_writes_routes_animation_and_metrics(tmp_path, capsys):
     out = tmp_path / "out"
-    assert main(["mission", "run", str(EXAMPLES / "mission.yaml"), "--out", str(out), "--fail", "2@3", "--fail", "0@40"]) == 2
+    assert (
+        main(["mission", "run", str(EXAMPLES / "mission.yaml"), "--out", str(out), "--fail", "2@3", "--fail", "0@40"])
+        == 2
+    )
     assert "--fail 0@40: step must be in [0, 25)" in capsys.readouterr().err
     result = run_mission(EXAMPLES / "mission.yaml", "oracle", out, ("2@3",))
     rows = list(csv.DictReader(open(out / "trajectories.csv")))
     assert len(rows) == (25 + 1) * 3
     still = [(r["x"], r["y"]) for r in rows if r["rover"] == "2" and int(r["step"]) >= 3]
-    assert len(set(still)) == 1 and all(r["working"] == "False" for r in rows if r["rover"] == "2" and int(r["step"]) >= 3)
+    assert len(set(still)) == 1 and all(
+        r["working"] == "False" for r in rows if r["rover"] == "2" and int(r["step"]) >= 3
+    )
     # the metrics, recomputed from the trajectories with the mission's POI positions and radii
     mission = load_mission(EXAMPLES / "mission.yaml")
     xy = np.array([[float(r["x"]), float(r["y"])] for r in rows]).reshape(26, 3, 2)
-    near = np.linalg.norm(xy[:, :, None] - mission.params.fixed_pois[None, None], axis=-1) < mission.params.observe_radius
+    near = (
+        np.linalg.norm(xy[:, :, None] - mission.params.fixed_pois[None, None], axis=-1) < mission.params.observe_radius
+    )
     first = [int(np.argmax(near[:, :, j].any(axis=1))) for j in range(3)]
     assert all(near[:, :, j].any() for j in range(3))
     metrics = list(csv.DictReader(open(out / "metrics.csv")))
@@ -281,12 +318,18 @@ def test_mission_run_writes_routes_animation_and_metrics(tmp_path, capsys):
 def test_mission_stress_reports_both_conditions_for_policy_and_oracle(tmp_path):
     rows = stress_mission(EXAMPLES / "survey.yaml", "random", tmp_path, episodes=40)
     assert [(r["policy"], r["condition"]) for r in rows] == [
-        ("random", "no failure"), ("random", "one rover fails"), ("oracle", "no failure"), ("oracle", "one rover fails")
+        ("random", "no failure"),
+        ("random", "one rover fails"),
+        ("oracle", "no failure"),
+        ("oracle", "one rover fails"),
     ]
     oracle = {r["condition"]: r for r in rows if r["policy"] == "oracle"}
     assert oracle["no failure"]["success"] == 1.0
     # two rovers must do the work of three: later, or not at all
-    assert oracle["one rover fails"]["time_to_all"] > oracle["no failure"]["time_to_all"] or oracle["one rover fails"]["success"] < 1
+    assert (
+        oracle["one rover fails"]["time_to_all"] > oracle["no failure"]["time_to_all"]
+        or oracle["one rover fails"]["success"] < 1
+    )
     random = {r["condition"]: r for r in rows if r["policy"] == "random"}
     assert random["no failure"]["success"] < 0.5 < oracle["one rover fails"]["success"]
     assert list(csv.DictReader(open(tmp_path / "stress.csv")))[3]["policy"] == "oracle"
@@ -296,15 +339,22 @@ def test_mission_stress_reports_both_conditions_for_policy_and_oracle(tmp_path):
 def test_train_on_a_mission_then_run_the_policy_and_refuse_a_mismatch(tiny_config, tmp_path):
     import dataclasses
 
-    from roverswarm.train import train
+    from roverswarm.config import TrainConfig
+    from roverswarm.trainer import train
 
-    config = dataclasses.replace(tiny_config, mission=str(EXAMPLES / "mission.yaml"), episodes=200, seeds=1)
+    # the mission sets the layout, so the scenario stays at its default (as the command line requires)
+    config = dataclasses.replace(
+        tiny_config, scenario=TrainConfig().scenario, mission=str(EXAMPLES / "mission.yaml"), episodes=200, seeds=1
+    )
     train(config, out=tmp_path / "run")
     mission = load_mission(EXAMPLES / "mission.yaml")
     policy = load_policy(str(tmp_path / "run"), mission)
     data = rollout(policy, jax.random.PRNGKey(0), mission.params, 1)
     np.testing.assert_allclose(data.poi_pos[0], mission.params.fixed_pois)
-    with pytest.raises(UserError, match=r"trained for 3 rovers, 3 POIs, 3 traps \(mission mission\); mission 'crater-survey' has 3 rovers, 6 POIs, 2 traps"):
+    with pytest.raises(
+        UserError,
+        match=r"trained for 3 rovers, 3 POIs, 3 traps \(mission mission\); mission 'crater-survey' has 3 rovers, 6 POIs, 2 traps",
+    ):
         load_policy(str(tmp_path / "run"), load_mission(EXAMPLES / "survey.yaml"))
     with pytest.raises(UserError, match=r"--policy-seed must be in \[0, 1\)"):
         load_policy(str(tmp_path / "run"), mission, seed=1)

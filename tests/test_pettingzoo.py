@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 from pettingzoo.test import parallel_api_test, parallel_seed_test
@@ -65,3 +68,15 @@ def test_rgb_array_render_shows_the_rovers():
     assert first.shape == second.shape and first.ndim == 3 and first.shape[2] == 3 and first.dtype == np.uint8
     assert not np.array_equal(first, second)
     assert RoverSwarmEnv("paper-3").render() is None
+
+
+def test_the_environment_imports_nothing_above_it():
+    """The environment package (and its PettingZoo wrapper) loads neither the trainer nor optax."""
+    code = (
+        "import sys, roverswarm.env.pettingzoo; "
+        "print(sorted(m for m in sys.modules if m.startswith(('roverswarm', 'optax'))))"
+    )
+    loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert "roverswarm.env.pettingzoo" in loaded
+    for above in ("optax", "roverswarm.trainer", "roverswarm.algos", "roverswarm.buffers", "roverswarm.config"):
+        assert f"'{above}" not in loaded, loaded

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from roverswarm.env import get_scenario
-from roverswarm.evaluate import rollout
+from roverswarm.rollout import rollout
 from roverswarm.policies import ORACLE, RANDOM, assign_pois
 
 

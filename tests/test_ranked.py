@@ -9,7 +9,8 @@ import pytest
 from scipy import stats
 
 from roverswarm.buffers.ranked import _running_sums, ranked_buffer
-from roverswarm.buffers.uniform import Transition, importance_weights, uniform_buffer
+from roverswarm.buffers.base import Transition, importance_weights
+from roverswarm.buffers.uniform import uniform_buffer
 
 N = 2  # agents: each ranks by its own losses
 DRAWS = 400  # batches per check

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import csv
-import dataclasses
 import os
 import signal
 import threading
@@ -20,6 +19,7 @@ from roverswarm.cli import main
 from roverswarm.errors import RunStopped, UserError
 from roverswarm.experiments import ReproduceConfig, reproduce
 from roverswarm.experiments.paper import PAPER_TABLE1, relative_change
+from roverswarm.config import with_options
 
 SCENARIOS = ("paper-2", "paper-3")
 ALGORITHMS = ("ddpg", "maddpg", "maddpg-optimizer")
@@ -27,7 +27,7 @@ ALGORITHMS = ("ddpg", "maddpg", "maddpg-optimizer")
 
 @pytest.fixture(scope="module")
 def base(tiny_config):
-    return dataclasses.replace(tiny_config, refresh_every=10)
+    return with_options(tiny_config, dict(refresh_every=10))
 
 
 def tiny_grid(out: Path, **changes) -> ReproduceConfig:
@@ -60,7 +60,9 @@ def test_table1_comes_from_the_metrics_files(finished):
             best[algorithm] = np.array([max(r["episode_reward"] for r in rows) for rows in per_seed.values()])
             seconds[algorithm] = np.array([r["wall_seconds"] * 10 for r in per_seed[0][1:]])  # rows of 100 episodes
         plain, opt = best["maddpg"], best["maddpg-optimizer"]
-        assert row["reward_change_pct"] == pytest.approx(100 * (opt.mean() - plain.mean()) / abs(plain.mean()), rel=1e-6)
+        assert row["reward_change_pct"] == pytest.approx(
+            100 * (opt.mean() - plain.mean()) / abs(plain.mean()), rel=1e-6
+        )
         assert row["reward_p"] == pytest.approx(stats.ttest_ind(opt, plain, equal_var=False).pvalue, rel=1e-6)
         assert row["reward_ci_low"] < row["reward_change_pct"] < row["reward_ci_high"]
         t_plain, t_opt = seconds["maddpg"], seconds["maddpg-optimizer"]
@@ -76,7 +78,16 @@ def test_figures_and_report(finished):
         assert image.ndim == 3 and image.shape[0] > 300 and image.shape[1] > 600
         assert image[..., :3].std() > 10  # not a blank canvas
     report = (finished / "report.md").read_text()
-    for part in ("## Settings", "## Machine", "Wall time", "## Table I", "(fig8.png)", "(fig9.png)", "MADDPG beats DDPG", "helps more as N grows"):
+    for part in (
+        "## Settings",
+        "## Machine",
+        "Wall time",
+        "## Table I",
+        "(fig8.png)",
+        "(fig9.png)",
+        "MADDPG beats DDPG",
+        "helps more as N grows",
+    ):
         assert part in report
     assert "| 3 | MADDPG + optimizer |" in report
 
@@ -96,12 +107,18 @@ def test_an_interrupted_grid_finishes_only_the_missing_runs(base, finished, tmp_
     with pytest.raises(RunStopped):
         reproduce(small, base, live=False)
     calls.clear()
-    monkeypatch.setattr(grid_module, "train", lambda config, out, **kw: calls.append(Path(out)) or real(config, out, **kw))
+    monkeypatch.setattr(
+        grid_module, "train", lambda config, out, **kw: calls.append(Path(out)) or real(config, out, **kw)
+    )
     reproduce(small, base, live=False)
     assert calls == [tmp_path / "runs" / "paper-2" / "maddpg-optimizer"]
     for algorithm in ALGORITHMS:  # same seeds, same numbers as the unbroken grid
-        ours, theirs = (seed_rows(root / "runs" / "paper-2" / algorithm / "metrics.csv") for root in (tmp_path, finished))
-        assert [[r["episode_reward"] for r in rows] for rows in ours.values()] == [[r["episode_reward"] for r in rows] for rows in theirs.values()]
+        ours, theirs = (
+            seed_rows(root / "runs" / "paper-2" / algorithm / "metrics.csv") for root in (tmp_path, finished)
+        )
+        assert [[r["episode_reward"] for r in rows] for rows in ours.values()] == [
+            [r["episode_reward"] for r in rows] for rows in theirs.values()
+        ]
     calls.clear()
     reproduce(small, base, live=False)  # nothing left: nothing trains
     assert calls == []
@@ -112,8 +129,8 @@ def test_an_interrupted_grid_finishes_only_the_missing_runs(base, finished, tmp_
 def test_a_folder_with_other_settings_is_not_overwritten(base, finished, capsys):
     with pytest.raises(UserError, match="holds a run with other settings"):
         reproduce(tiny_grid(finished, seed=5), base, live=False)
-    assert main(["reproduce", "--out", str(finished), "--scenarios", "paper-9"]) == 2
-    assert "unknown scenario 'paper-9'" in capsys.readouterr().err
+    assert main(["reproduce", "--out", str(finished), "--scenarios", "paper-11"]) == 2
+    assert "unknown scenario 'paper-11'" in capsys.readouterr().err
     assert main(["reproduce", "--out", str(finished), "--address", "x:1"]) == 2
     assert "--address needs --backend ray" in capsys.readouterr().err
     assert main(["reproduce", "--out", str(finished), "--scenarios", "paper-3", "spread-3"]) == 2
@@ -166,7 +183,11 @@ def test_ray_backend_retries_a_killed_worker_and_matches_the_local_backend(base,
         ray.shutdown()
     assert killed, "no worker was killed"
     for algorithm in ALGORITHMS:
-        ours, local = (seed_rows(root / "runs" / "paper-2" / algorithm / "metrics.csv") for root in (tmp_path, finished))
-        strip = lambda rows: {s: [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rs] for s, rs in rows.items()}  # noqa: E731
+        ours, local = (
+            seed_rows(root / "runs" / "paper-2" / algorithm / "metrics.csv") for root in (tmp_path, finished)
+        )
+        strip = lambda rows: {
+            s: [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rs] for s, rs in rows.items()
+        }  # noqa: E731
         assert strip(ours) == strip(local)
     assert (tmp_path / "report.md").exists()

@@ -9,16 +9,17 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
 
 from roverswarm.cli import main
-from roverswarm.errors import RunStopped, UserError
+from roverswarm.errors import RunStopped
 from roverswarm.evaluate import evaluate_run
-from roverswarm.train import CHECKPOINT, REFERENCE, TrainConfig, config_from_json, load_run, read_metrics, train
+from roverswarm.config import REFERENCE, TrainConfig, config_from_json, with_options
+from roverswarm.runs import CHECKPOINT, Run, read_metrics
+from roverswarm.trainer import train
 
 TIMELESS = lambda rows: [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rows]  # noqa: E731
 
@@ -29,7 +30,7 @@ def cli_args(config: TrainConfig) -> list[str]:
     for f in dataclasses.fields(config):
         value = getattr(config, f.name)
         flag = f.name.replace("_", "-")
-        if f.name == "learner":
+        if f.name in ("learner", "buffer"):
             args += cli_args(value)
         elif isinstance(value, bool):
             args.append(f"--{flag}" if value else f"--no-{flag}")
@@ -53,7 +54,15 @@ def test_outputs_of_a_run(unbroken, tiny_config):
     chunks = tiny_config.episodes // tiny_config.log_every
     assert len(rows) == chunks * tiny_config.seeds
     assert [r["episodes"] for r in rows[:: tiny_config.seeds]] == [100.0 * (c + 1) for c in range(chunks)]
-    for column in ("episode_reward", "agent_0_reward", "agent_1_reward", "collisions", "trap_contacts", "coverage_distance", "wall_seconds"):
+    for column in (
+        "episode_reward",
+        "agent_0_reward",
+        "agent_1_reward",
+        "collisions",
+        "trap_contacts",
+        "coverage_distance",
+        "wall_seconds",
+    ):
         assert column in rows[0]
     for r in rows:  # the episode reward is the sum of the agents' rewards
         assert r["episode_reward"] == pytest.approx(r["agent_0_reward"] + r["agent_1_reward"], rel=1e-4)
@@ -74,12 +83,33 @@ def test_same_seed_same_numbers_different_seeds_different_networks(unbroken, tin
     assert not all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(seed0), jax.tree.leaves(seed1)))
 
 
-def test_resume_after_sigkill_gives_the_numbers_of_an_unbroken_run(unbroken, tiny_config, tmp_path):
+SWARM_OPTIONS = dict(
+    share_parameters=True,
+    twin_critics=True,
+    target_noise=0.2,
+    actor_delay=2,
+    layer_norm=True,
+    normalize_obs=True,
+    reward_scale=0.5,
+)
+"""The swarm preset's learner options (and reward scaling) on the tiny config."""
+
+
+@pytest.mark.parametrize("options", [{}, SWARM_OPTIONS], ids=["default", "swarm"])
+def test_resume_after_sigkill_gives_the_numbers_of_an_unbroken_run(unbroken, tiny_config, tmp_path, options):
+    """Killed mid-run and resumed, the metrics are the unbroken run's: replay, networks,
+    optimisers and (swarm options) the observation normaliser and the update counter are all
+    in the checkpoint."""
     out = tmp_path / "killed"
-    config = dataclasses.replace(tiny_config, episodes=2000)
+    config = with_options(tiny_config, {**options, "episodes": 2000})
     reference = train(config, progress=False)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    process = subprocess.Popen([sys.executable, "-m", "roverswarm.cli", "train", *cli_args(config), "--out", str(out)], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    process = subprocess.Popen(
+        [sys.executable, "-m", "roverswarm.cli", "train", *cli_args(config), "--out", str(out)],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     deadline = time.time() + 120
     while not (out / CHECKPOINT).exists() and time.time() < deadline and process.poll() is None:
         time.sleep(0.01)
@@ -90,13 +120,20 @@ def test_resume_after_sigkill_gives_the_numbers_of_an_unbroken_run(unbroken, tin
     assert main(["train", "--resume", str(out)]) == 0
     assert TIMELESS(read_metrics(out / "metrics.csv")) == TIMELESS(reference.metrics)
     seeds = [line.split(",")[0] for line in (out / "metrics.csv").read_text().splitlines()[1:]]
-    assert seeds == [str(s) for _ in range(config.episodes // config.log_every) for s in range(config.seeds)], "rows rewritten on resume keep integer seeds"
+    assert seeds == [str(s) for _ in range(config.episodes // config.log_every) for s in range(config.seeds)], (
+        "rows rewritten on resume keep integer seeds"
+    )
 
 
 def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(tiny_config, tmp_path):
     out = tmp_path / "interrupted"
     config = dataclasses.replace(tiny_config, episodes=4000, checkpoint_every=1000)
-    process = subprocess.Popen([sys.executable, "-m", "roverswarm.cli", "train", *cli_args(config), "--out", str(out)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(
+        [sys.executable, "-m", "roverswarm.cli", "train", *cli_args(config), "--out", str(out)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     deadline = time.time() + 120
     while not (out / "tb").exists() and time.time() < deadline:
         time.sleep(0.01)
@@ -112,7 +149,7 @@ def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(tiny_config, tmp_path):
 
 
 def test_non_finite_losses_stop_the_run_and_keep_the_last_good_checkpoint(tiny_config, tmp_path, monkeypatch):
-    import roverswarm.train as train_module
+    import roverswarm.trainer as train_module
 
     real = train_module.run_chunk
     calls = []
@@ -136,9 +173,9 @@ def test_non_finite_losses_stop_the_run_and_keep_the_last_good_checkpoint(tiny_c
 def test_ranked_replay_is_deterministic_and_resumes_exactly(tiny_config, tmp_path, monkeypatch):
     """Same seed => same numbers with the experience sample optimizer, also across a Ctrl-C
     (checkpoint of losses and sampling table) and a resume."""
-    import roverswarm.train as train_module
+    import roverswarm.trainer as train_module
 
-    config = dataclasses.replace(tiny_config, replay="ranked", refresh_every=10, importance_weights=True)
+    config = with_options(tiny_config, dict(replay="ranked", refresh_every=10, importance_weights=True))
     reference = train(config, progress=False)
     real = train_module.run_chunk
     calls = []
@@ -196,7 +233,7 @@ def test_evaluate_reports_policies_beside_random_and_oracle(unbroken, capsys):
     names = [r["policy"] for r in rows]
     assert names == ["random", "oracle", "maddpg seed 0", "maddpg seed 1"]
     assert rows[0]["normalized_score"] == 0.0 and rows[1]["normalized_score"] == 1.0
-    config, learner = load_run(unbroken.out)
+    learner = Run(unbroken.out).learner
     np.testing.assert_array_equal(jax.tree.leaves(learner.actor)[0], jax.tree.leaves(unbroken.learner.actor)[0])
     assert main(["evaluate", str(unbroken.out), "--episodes", "50"]) == 0
     out = capsys.readouterr().out
@@ -207,9 +244,8 @@ def test_evaluate_reports_policies_beside_random_and_oracle(unbroken, capsys):
 @pytest.mark.parametrize("algo", ["maddpg", "ddpg"])
 def test_a_short_run_learns_to_beat_random_by_a_wide_margin(algo, tmp_path):
     """The reference settings (the cheapest to train) on paper-2, 4000 episodes."""
-    config = dataclasses.replace(
-        REFERENCE, scenario="paper-2", learner=dataclasses.replace(REFERENCE.learner, algo=algo),
-        episodes=4000, seeds=2, batch_size=256, buffer_size=50_000,
+    config = with_options(
+        REFERENCE, dict(scenario="paper-2", algo=algo, episodes=4000, seeds=2, batch_size=256, buffer_size=50_000)
     )
     result = train(config, out=tmp_path, progress=False)
     rows = evaluate_run(tmp_path, episodes=500)
@@ -224,12 +260,14 @@ def test_preset_reference_starts_from_the_reference_values(monkeypatch, tmp_path
     import roverswarm.cli as cli
 
     seen = []
-    monkeypatch.setattr(cli, "train", lambda config, **kw: seen.append(config) or (_ for _ in ()).throw(RunStopped("parsed")))
+    monkeypatch.setattr(
+        cli, "train", lambda config, **kw: seen.append(config) or (_ for _ in ()).throw(RunStopped("parsed"))
+    )
     assert main(["train", "--preset", "reference", "--scenario", "spread-3", "--out", str(tmp_path / "a")]) == 1
     assert main(["train", "--scenario", "spread-3", "--out", str(tmp_path / "b")]) == 1
     assert seen[0] == dataclasses.replace(REFERENCE, scenario="spread-3")
     assert seen[1] == TrainConfig(scenario="spread-3") != seen[0]
-    assert (seen[0].learner.actor_lr, seen[0].update_every, seen[0].batch_size) == (1e-2, 100, 1024)
+    assert (seen[0].learner.actor_lr, seen[0].update_every, seen[0].buffer.batch_size) == (1e-2, 100, 1024)
 
 
 def test_the_python_api_is_roverswarm_train(unbroken, tiny_config):
@@ -237,3 +275,19 @@ def test_the_python_api_is_roverswarm_train(unbroken, tiny_config):
 
     result = roverswarm.train(tiny_config, progress=False)
     assert isinstance(result, roverswarm.Result) and TIMELESS(result.metrics) == TIMELESS(unbroken.metrics)
+
+
+def test_run_folders_written_before_the_replay_config_moved_still_load(unbroken, tmp_path, capsys):
+    """A config.json with the replay settings at the top level (as written before they moved
+    into ``buffer``) loads, evaluates and resumes."""
+    import shutil
+
+    old = tmp_path / "old"
+    shutil.copytree(unbroken.out, old)
+    raw = json.loads((old / "config.json").read_text())
+    raw.update(raw.pop("buffer"))
+    (old / "config.json").write_text(json.dumps(raw))
+    assert Run(old).config == unbroken.config
+    assert [r["policy"] for r in evaluate_run(old, episodes=20)][2:] == ["maddpg seed 0", "maddpg seed 1"]
+    assert main(["train", "--resume", str(old)]) == 0
+    assert TIMELESS(read_metrics(old / "metrics.csv")) == TIMELESS(unbroken.metrics)

@@ -3,16 +3,45 @@
 From a notebook::
 
     import roverswarm
-    result = roverswarm.train(roverswarm.TrainConfig(scenario="spread-3", episodes=20_000))
+    result = roverswarm.train(roverswarm.TrainConfig(scenario="spread-3", episodes=20_000), out="runs/spread-3")
+    rows = roverswarm.evaluate_run("runs/spread-3")          # random, oracle and every seed
+    policy = roverswarm.Run("runs/spread-3").policy(seed=0)  # a run folder as a policy
 
-``roverswarm.train`` is the training module, and calling it calls
-:func:`roverswarm.train.train`, so ``import roverswarm.train`` and
-``from roverswarm.train import REFERENCE`` keep working.
+``roverswarm.train`` is a plain function (:func:`roverswarm.trainer.train`); the modules are
+named for what they hold (``config``, ``trainer``, ``runs``, ``rollout``, ``evaluate``, ...).
+The names below load their modules on first use, so ``import roverswarm.env`` (or the
+PettingZoo wrapper) does not load the trainer.
 """
 
-import roverswarm.train  # noqa: F401 (makes the module callable; see train.py's last lines)
-from roverswarm.algos.maddpg import AlgoConfig
-from roverswarm.train import Result, TrainConfig
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from roverswarm.algos.learner import AlgoConfig
+    from roverswarm.buffers.base import ReplayConfig
+    from roverswarm.config import PRESETS, TrainConfig
+    from roverswarm.evaluate import evaluate_run
+    from roverswarm.runs import Run
+    from roverswarm.trainer import Result, train
+
+_EXPORTS = {
+    "AlgoConfig": "roverswarm.algos.learner",
+    "ReplayConfig": "roverswarm.buffers.base",
+    "PRESETS": "roverswarm.config",
+    "TrainConfig": "roverswarm.config",
+    "evaluate_run": "roverswarm.evaluate",
+    "Run": "roverswarm.runs",
+    "Result": "roverswarm.trainer",
+    "train": "roverswarm.trainer",
+}
 
 __version__ = "0.1.0"
-__all__ = ["AlgoConfig", "Result", "TrainConfig", "train"]
+__all__ = ["PRESETS", "AlgoConfig", "ReplayConfig", "Result", "Run", "TrainConfig", "evaluate_run", "train"]
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'roverswarm' has no attribute '{name}'")

@@ -1,11 +1,12 @@
-"""The ``roverswarm`` command line: thin. Each command parses a typed config and calls one function.
+"""The ``roverswarm`` command line: thin. Each command parses a typed config (defined beside the
+function it runs) and calls that function; the checks live in the functions, so a notebook
+meets the same ones.
 
 A :class:`roverswarm.errors.UserError` ends the command with one line on stderr and exit code 2.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,9 +16,15 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
+from roverswarm.animation import RenderConfig
+from roverswarm.config import PRESETS, TrainConfig, config_from_json, resume_conflicts
 from roverswarm.errors import RunStopped, UserError, require
+from roverswarm.evaluate import EvaluateConfig
 from roverswarm.experiments import ReproduceConfig, reproduce
-from roverswarm.train import CONFIG, PRESETS, TrainConfig, config_from_json, train
+from roverswarm.experiments.sweep import SweepConfig
+from roverswarm.mission import MissionConfig, MissionRunConfig
+from roverswarm.runs import CONFIG
+from roverswarm.trainer import train
 
 
 @dataclass(frozen=True)
@@ -26,148 +33,18 @@ class ScenariosCommand:
 
 
 @dataclass(frozen=True)
-class RenderCommand:
-    """Draw one episode of a reference policy to a GIF or MP4, plus a PNG of the last frame."""
-
-    scenario: str = "paper-3"
-    """Scenario preset (see `roverswarm scenarios`)."""
-    policy: Literal["oracle", "random"] = "oracle"
-    """Policy that drives the rovers."""
-    out: Path = Path("episode.gif")
-    """Output animation, .gif or .mp4; the last frame is also written beside it as .png."""
-    seed: int = 0
-    """Random seed of the episode layout and of the random policy."""
-
-
-@dataclass(frozen=True)
 class TrainCommand:
     """Train MADDPG or DDPG on a scenario (seeds vmapped); writes metrics, checkpoints, curves."""
 
-    preset: Literal["default", "reference"] = "default"
-    """Starting values of every option: `default` (tuned to learn), or `reference` (the
-    reference MADDPG code's, as in the paper). Options given beside it change them."""
+    preset: Literal["default", "reference", "swarm"] = "default"
+    """Starting values of every option: `default` (tuned to learn), `reference` (the reference
+    MADDPG code's), or `swarm` (shared networks, MATD3, normalisation: learns large swarms).
+    Options given beside it change them."""
     config: TrainConfig = field(default_factory=TrainConfig)
     out: Path | None = None
     """Output folder (config.json, metrics.csv, tb/, checkpoint.npz, learning_curve.png)."""
     resume: Path | None = None
     """Continue the interrupted run in this folder; options given with it must match its config."""
-
-
-@dataclass(frozen=True)
-class EvaluateCommand:
-    """Deterministic episodes of a trained run beside the random and oracle policies."""
-
-    run: tyro.conf.Positional[Path]
-    """Run folder written by `roverswarm train --out`."""
-    episodes: int = 1000
-    """Evaluation episodes per policy (the same layouts for every policy)."""
-    seed: int = 0
-    """Seed of the evaluation episodes."""
-    sub_policies: Literal["random", "each"] = "random"
-    """Runs with --ensemble K: `random` draws every agent's sub-policy per episode, as in
-    training; `each` runs sub-policy k of all agents, for every k."""
-    partners: Literal["own", "other-seeds"] = "own"
-    """`own`: each seed's agents together; `other-seeds`: agent i of seed s beside the other
-    agents of seeds s + 1, s + 2, ... (mod seeds), partners it never trained with."""
-
-
-@dataclass(frozen=True)
-class MissionRunCommand:
-    """Run a swarm on a mission file: trajectories, an animation, a map of routes, metrics."""
-
-    mission: tyro.conf.Positional[Path]
-    """Mission file (YAML or JSON; see examples/mission.yaml)."""
-    policy: str = "oracle"
-    """`oracle`, `random`, or a run folder of `roverswarm train` (same numbers of rovers, POIs, traps)."""
-    out: Path = Path("mission-out")
-    """Output folder: trajectories.csv, metrics.csv, metrics.md, routes.png, mission.gif and its last frame mission.png."""
-    fail: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
-    """ROVER@STEP: freeze that rover from that step on."""
-    episodes: int = 1
-    """Episodes to run (they differ when the mission has a release zone or the policy is random); files show episode 0."""
-    seed: int = 0
-    """Seed of the episodes (release-zone starts, random policy)."""
-    policy_seed: int = 0
-    """Which seed of a trained run drives the rovers."""
-    animation: Literal["gif", "mp4"] = "gif"
-    """Animation format."""
-
-
-@dataclass(frozen=True)
-class MissionStressCommand:
-    """Many episodes with one random rover failing at a random step: how success and time to
-    observe all degrade, for the policy beside the oracle."""
-
-    mission: tyro.conf.Positional[Path]
-    """Mission file (YAML or JSON)."""
-    policy: str = "oracle"
-    """`oracle`, `random`, or a run folder of `roverswarm train`."""
-    out: Path = Path("mission-stress")
-    """Output folder: stress.csv, stress.md, stress.png."""
-    episodes: int = 500
-    """Episodes per policy and condition."""
-    seed: int = 0
-    """Seed of the episodes and of the failures."""
-    policy_seed: int = 0
-    """Which seed of a trained run drives the rovers."""
-
-
-@dataclass(frozen=True)
-class MissionCommand:
-    """Missions: scientists' POIs and traps in; routes, animations and mission metrics out."""
-
-    action: Union[
-        Annotated[MissionRunCommand, tyro.conf.subcommand(name="run")],
-        Annotated[MissionStressCommand, tyro.conf.subcommand(name="stress")],
-    ]
-
-
-def run_mission(cmd: MissionCommand) -> None:
-    from roverswarm import mission
-
-    action, console = cmd.action, Console()
-    if isinstance(action, MissionRunCommand):
-        result = mission.run_mission(action.mission, action.policy, action.out, action.fail, action.episodes, action.seed, action.policy_seed, action.animation)
-        console.print(result.files["metrics.md"].read_text(), markup=False)
-        console.print(f"wrote {', '.join(str(p) for p in result.files.values())}")
-    else:
-        rows = mission.stress_mission(action.mission, action.policy, action.out, action.episodes, action.seed, action.policy_seed)
-        console.print(mission.markdown_table(list(rows[0]), [list(r.values()) for r in rows]), markup=False)
-        console.print(f"wrote {action.out / 'stress.md'}, stress.csv and stress.png")
-
-
-def _flat_fields(config) -> dict[str, object]:
-    """Every leaf field of a (nested) config dataclass, by name."""
-    flat: dict[str, object] = {}
-    for f in dataclasses.fields(config):
-        value = getattr(config, f.name)
-        flat.update(_flat_fields(value) if dataclasses.is_dataclass(value) else {f.name: value})
-    return flat
-
-
-def run_train(cmd: TrainCommand) -> None:
-    if cmd.resume is None:
-        config = cmd.config
-        require(
-            config.mission is None or config.scenario == PRESETS[cmd.preset].scenario,
-            f"--scenario {config.scenario} and --mission: the mission file sets the layout and the number of rovers; give one of them",
-        )
-        if config.mission is not None:  # stored absolute, so resume and evaluate work from any folder
-            config = dataclasses.replace(config, mission=str(Path(config.mission).resolve()))
-        require(cmd.out is not None or config.episodes <= 10_000, "give --out for runs of more than 10000 episodes, so that they can be resumed")
-        result = train(config, out=cmd.out)
-    else:
-        require((cmd.resume / CONFIG).exists(), f"--resume: '{cmd.resume}' holds no config.json")
-        require(cmd.out in (None, cmd.resume), "--out and --resume name different folders")
-        config = config_from_json((cmd.resume / CONFIG).read_text())
-        given, defaults, saved = (_flat_fields(c) for c in (cmd.config, PRESETS[cmd.preset], config))
-        for name, value in given.items():  # options given with --resume must match the run
-            if value != defaults[name]:
-                require(value == saved[name], f"--resume: the run in '{cmd.resume}' has {name}={saved[name]!r}, not {value!r}")
-        result = train(config, out=cmd.resume, resume=True)
-    last = [r for r in result.metrics if r["episodes"] == result.metrics[-1]["episodes"]]
-    mean = sum(r["episode_reward"] for r in last) / len(last)
-    Console().print(f"done: mean episode reward {mean:.2f} over the last {config.log_every} episodes" + (f"; results in {result.out}" if result.out else ""))
 
 
 @dataclass(frozen=True)
@@ -178,53 +55,108 @@ class ReproduceCommand:
     config: ReproduceConfig = field(default_factory=ReproduceConfig)
 
 
+def run_train(cmd: TrainCommand) -> None:
+    if cmd.resume is None:
+        result = train(cmd.config, out=cmd.out)
+    else:
+        require((cmd.resume / CONFIG).exists(), f"--resume: '{cmd.resume}' holds no config.json")
+        require(cmd.out in (None, cmd.resume), "--out and --resume name different folders")
+        saved = config_from_json((cmd.resume / CONFIG).read_text())
+        resume_conflicts(cmd.config, PRESETS[cmd.preset], saved)
+        result = train(saved, out=cmd.resume, resume=True)
+    last = [r for r in result.metrics if r["episodes"] == result.metrics[-1]["episodes"]]
+    mean = sum(r["episode_reward"] for r in last) / len(last)
+    Console().print(
+        f"done: mean episode reward {mean:.2f} over the last {result.config.log_every} episodes"
+        + (f"; results in {result.out}" if result.out else "")
+    )
+
+
 def run_reproduce(cmd: ReproduceCommand) -> None:
     report = reproduce(cmd.config)
     Console().print(f"\ndone: {report} (with table1.md, table1.csv, fig8.png, fig9.png)")
 
 
-def run_evaluate(cmd: EvaluateCommand) -> None:
+def run_sweep(cmd: SweepConfig) -> None:
+    from roverswarm.experiments.sweep import sweep
+
+    table = sweep(cmd)
+    Console().print(table.read_text(), markup=False)
+    Console().print(f"wrote {table} and {table.with_suffix('.csv')}")
+
+
+def print_table(title: str, rows: list[dict[str, object]], left: tuple[str, ...]) -> None:
+    """``rows`` as a rich table; columns named in ``left`` left-aligned, numbers to 3 decimals."""
+    table = Table(title=title)
+    for column in rows[0]:
+        table.add_column(
+            column.replace("_", " "), justify="left" if column in left else "right", no_wrap=column == "policy"
+        )
+    for row in rows:
+        table.add_row(*(f"{v:.3f}" if isinstance(v, float) else str(v) for v in row.values()))
+    Console().print(table)
+
+
+def run_evaluate(cmd: EvaluateConfig) -> None:
     from roverswarm.evaluate import evaluate_run
 
     rows = evaluate_run(cmd.run, cmd.episodes, cmd.seed, cmd.sub_policies, cmd.partners)
-    table = Table(title=f"{cmd.run}: {cmd.episodes} deterministic episodes, seed {cmd.seed}")
-    for column in rows[0]:
-        table.add_column(column.replace("_", " "), justify="left" if column == "policy" else "right", no_wrap=column == "policy")
-    for row in rows:
-        table.add_row(*(v if isinstance(v, str) else f"{v:.3f}" for v in row.values()))
-    Console().print(table)
+    print_table(f"{cmd.run}: {cmd.episodes} deterministic episodes, seed {cmd.seed}", rows, ("policy",))
 
 
 def run_scenarios(cmd: ScenariosCommand) -> None:
     from roverswarm.env.scenarios import scenario_table
 
-    rows = scenario_table()
-    table = Table(title="roverswarm scenarios")
-    for column in rows[0]:
-        table.add_column(column, justify="left" if column in ("name", "description") else "right")
-    for row in rows:
-        table.add_row(*(str(v) for v in row.values()))
-    Console().print(table)
+    print_table("roverswarm scenarios", scenario_table(), ("name", "description"))
 
 
-def run_render(cmd: RenderCommand) -> None:
-    from roverswarm.env.render import check_animation_path, render_episode
+def run_render(cmd: RenderConfig) -> None:
+    from roverswarm.animation import render_episode
+    from roverswarm.env.render import check_animation_path
     from roverswarm.env.scenarios import get_scenario
     from roverswarm.policies import REFERENCE_POLICIES
 
     params = get_scenario(cmd.scenario)
     check_animation_path(cmd.out)
-    png = render_episode(params, REFERENCE_POLICIES[cmd.policy], cmd.out, cmd.seed, label=f"{cmd.scenario} {cmd.policy}")
+    png = render_episode(
+        params, REFERENCE_POLICIES[cmd.policy], cmd.out, cmd.seed, label=f"{cmd.scenario} {cmd.policy}"
+    )
     Console().print(f"wrote {cmd.out} and {png}")
+
+
+def run_mission(cmd: MissionConfig) -> None:
+    from roverswarm import mission
+
+    action, console = cmd.action, Console()
+    if isinstance(action, MissionRunConfig):
+        result = mission.run_mission(
+            action.mission,
+            action.policy,
+            action.out,
+            action.fail,
+            action.episodes,
+            action.seed,
+            action.policy_seed,
+            action.animation,
+        )
+        console.print(result.files["metrics.md"].read_text(), markup=False)
+        console.print(f"wrote {', '.join(str(p) for p in result.files.values())}")
+    else:
+        rows = mission.stress_mission(
+            action.mission, action.policy, action.out, action.episodes, action.seed, action.policy_seed
+        )
+        console.print(mission.markdown_table(list(rows[0]), [list(r.values()) for r in rows]), markup=False)
+        console.print(f"wrote {action.out / 'stress.md'}, stress.csv and stress.png")
 
 
 COMMANDS: dict[str, tuple[type, Callable]] = {
     "scenarios": (ScenariosCommand, run_scenarios),
-    "render": (RenderCommand, run_render),
+    "render": (RenderConfig, run_render),
     "train": (TrainCommand, run_train),
-    "evaluate": (EvaluateCommand, run_evaluate),
+    "evaluate": (EvaluateConfig, run_evaluate),
+    "sweep": (SweepConfig, run_sweep),
     "reproduce": (ReproduceCommand, run_reproduce),
-    "mission": (MissionCommand, run_mission),
+    "mission": (MissionConfig, run_mission),
 }
 
 

@@ -11,6 +11,9 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, Literal, Union
+
+import tyro
 
 import jax
 import numpy as np
@@ -18,11 +21,66 @@ from matplotlib.figure import Figure
 
 from roverswarm.env.mars import NEVER, EnvParams
 from roverswarm.env.missions import Mission, load_mission
-from roverswarm.env.render import FrameRenderer, episode_frames, save_animation
+from roverswarm.animation import episode_frames
+from roverswarm.env.render import FrameRenderer, save_animation
 from roverswarm.errors import require
-from roverswarm.evaluate import MissionStats, Rollout, rollout
-from roverswarm.policies import ORACLE, REFERENCE_POLICIES, Policy, trained_policy
-from roverswarm.train import load_run, validate, write_csv
+from roverswarm.policies import ORACLE, REFERENCE_POLICIES, Policy
+from roverswarm.rollout import MissionStats, Rollout, rollout
+from roverswarm.runs import Run, write_csv
+
+
+@dataclass(frozen=True)
+class MissionRunConfig:
+    """Run a swarm on a mission file: trajectories, an animation, a map of routes, metrics."""
+
+    mission: tyro.conf.Positional[Path]
+    """Mission file (YAML or JSON; see examples/mission.yaml)."""
+    policy: str = "oracle"
+    """`oracle`, `random`, or a run folder of `roverswarm train` (same numbers of rovers, POIs, traps)."""
+    out: Path = Path("mission-out")
+    """Output folder: trajectories.csv, metrics.csv, metrics.md, routes.png, mission.gif and
+    its last frame mission.png."""
+    fail: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
+    """ROVER@STEP: freeze that rover from that step on."""
+    episodes: int = 1
+    """Episodes to run (they differ when the mission has a release zone or the policy is
+    random); files show episode 0."""
+    seed: int = 0
+    """Seed of the episodes (release-zone starts, random policy)."""
+    policy_seed: int = 0
+    """Which seed of a trained run drives the rovers."""
+    animation: Literal["gif", "mp4"] = "gif"
+    """Animation format."""
+
+
+@dataclass(frozen=True)
+class MissionStressConfig:
+    """Many episodes with one random rover failing at a random step: how success and time to
+    observe all degrade, for the policy beside the oracle."""
+
+    mission: tyro.conf.Positional[Path]
+    """Mission file (YAML or JSON)."""
+    policy: str = "oracle"
+    """`oracle`, `random`, or a run folder of `roverswarm train`."""
+    out: Path = Path("mission-stress")
+    """Output folder: stress.csv, stress.md, stress.png."""
+    episodes: int = 500
+    """Episodes per policy and condition."""
+    seed: int = 0
+    """Seed of the episodes and of the failures."""
+    policy_seed: int = 0
+    """Which seed of a trained run drives the rovers."""
+
+
+@dataclass(frozen=True)
+class MissionConfig:
+    """Missions: scientists' POIs and traps in; routes, animations and mission metrics out."""
+
+    action: Union[
+        Annotated[MissionRunConfig, tyro.conf.subcommand(name="run")],
+        Annotated[MissionStressConfig, tyro.conf.subcommand(name="stress")],
+    ]
+
 
 _FAILURE = re.compile(r"^(\d+)@(\d+)$")
 
@@ -32,21 +90,20 @@ def load_policy(spec: str, mission: Mission, seed: int = 0) -> Policy:
     against the mission's numbers of rovers, POIs and traps."""
     if spec in REFERENCE_POLICIES:
         return REFERENCE_POLICIES[spec]
-    require(Path(spec).is_dir(), f"--policy: expected 'oracle', 'random' or a run folder of `roverswarm train`, got '{spec}'")
-    config, learner = load_run(Path(spec))
-    trained = validate(config)
-    p = mission.params
+    require(
+        Path(spec).is_dir(),
+        f"--policy: expected 'oracle', 'random' or a run folder of `roverswarm train`, got '{spec}'",
+    )
+    run = Run(spec)
+    trained, config, p = run.params, run.config, mission.params
     require(
         (trained.num_rovers, trained.num_pois, trained.num_traps) == (p.num_rovers, p.num_pois, p.num_traps),
-        f"--policy: '{spec}' was trained for {trained.num_rovers} rovers, {trained.num_pois} POIs, {trained.num_traps} traps "
+        f"--policy: '{spec}' was trained for {trained.num_rovers} rovers, {trained.num_pois} POIs, "
+        f"{trained.num_traps} traps "
         f"({config.env_name()}); mission '{mission.name}' has {mission.counts()}. "
         "Train on the mission with `roverswarm train --mission FILE`.",
     )
-    require(0 <= seed < config.seeds, f"--policy-seed must be in [0, {config.seeds}) for '{spec}', got {seed}")
-    actor = jax.tree.map(lambda x: x[seed], learner.actor)
-    ensemble = ", random sub-policies" if config.learner.ensemble > 1 else ""
-    obs_norm = None if learner.obs_norm is None else jax.tree.map(lambda x: x[seed], learner.obs_norm)
-    return trained_policy(config.learner, actor, f"{config.learner.algo} ({Path(spec).name}, seed {seed}{ensemble})", seed=seed, obs_norm=obs_norm)
+    return run.policy(seed)
 
 
 def parse_failures(failures: list[str], params: EnvParams) -> np.ndarray:
@@ -116,20 +173,46 @@ def mission_report(stats: MissionStats, mission: Mission, policy: str, fail_step
     lines = [
         f"# Mission '{mission.name}': {policy}\n",
         f"{mission.counts()}; {mission.params.max_steps} steps of {dt:g} time units"
-        + (f"; failures: {', '.join(failed)}" if failed else "") + ".\n",
+        + (f"; failures: {', '.join(failed)}" if failed else "")
+        + ".\n",
         markdown_table(
-            ["success", "POIs observed", "time to observe all (steps)", "collisions", "trap contacts", "total path length"],
-            [[stats.success[0], f"{stats.pois_observed[0]}/{mission.params.num_pois}", stats.time_to_all[0],
-              stats.collisions[0], stats.trap_contacts[0], stats.path_length[0].sum()]],
+            [
+                "success",
+                "POIs observed",
+                "time to observe all (steps)",
+                "collisions",
+                "trap contacts",
+                "total path length",
+            ],
+            [
+                [
+                    stats.success[0],
+                    f"{stats.pois_observed[0]}/{mission.params.num_pois}",
+                    stats.time_to_all[0],
+                    stats.collisions[0],
+                    stats.trap_contacts[0],
+                    stats.path_length[0].sum(),
+                ]
+            ],
         ),
-        markdown_table(["POI", "first observed (step)"], [[n, t] for n, t in zip(mission.poi_names, stats.first_observed[0])]),
-        markdown_table(["rover", "path length", "failed at step"], [
-            [i, length, "-" if s == NEVER else int(s)] for i, (length, s) in enumerate(zip(stats.path_length[0], fail_step))
-        ]),
+        markdown_table(
+            ["POI", "first observed (step)"], [[n, t] for n, t in zip(mission.poi_names, stats.first_observed[0])]
+        ),
+        markdown_table(
+            ["rover", "path length", "failed at step"],
+            [
+                [i, length, "-" if s == NEVER else int(s)]
+                for i, (length, s) in enumerate(zip(stats.path_length[0], fail_step))
+            ],
+        ),
     ]
     if len(stats.success) > 1:
         mean = stats.summary()
-        timing = f"time to observe all {mean['time_to_all']:.1f} steps (successful episodes)" if stats.success.any() else "none succeeded"
+        timing = (
+            f"time to observe all {mean['time_to_all']:.1f} steps (successful episodes)"
+            if stats.success.any()
+            else "none succeeded"
+        )
         lines.append(
             f"Over {len(stats.success)} episodes: success {mean['success']:.0%}, {timing}, "
             f"collisions {mean['collisions']:.2f}, trap contacts {mean['trap_contacts']:.2f}.\n"
@@ -137,13 +220,21 @@ def mission_report(stats: MissionStats, mission: Mission, policy: str, fail_step
     return "\n".join(lines)
 
 
-def _routes_png(data: Rollout, mission: Mission, stats: MissionStats, fail_step: np.ndarray, path: Path, title: str) -> None:
+def _routes_png(
+    data: Rollout, mission: Mission, stats: MissionStats, fail_step: np.ndarray, path: Path, title: str
+) -> None:
     """The whole route of episode 0 with the POIs named and their observation steps."""
     renderer = FrameRenderer(mission.params, pixels=640)
     renderer.frame(data.rover_pos[0], data.poi_pos[0], data.trap_pos[0], data.observed[0, -1], title)
     ax = renderer.ax
     for (x, y), name, t in zip(data.poi_pos[0], mission.poi_names, stats.first_observed[0]):
-        ax.annotate(f"{name} ({'never' if np.isnan(t) else f't={t:.0f}'})", (x, y), xytext=(6, 6), textcoords="offset points", fontsize=8)
+        ax.annotate(
+            f"{name} ({'never' if np.isnan(t) else f't={t:.0f}'})",
+            (x, y),
+            xytext=(6, 6),
+            textcoords="offset points",
+            fontsize=8,
+        )
     for i, s in enumerate(fail_step):
         if s != NEVER:
             x, y = data.rover_pos[0, -1, i]
@@ -151,7 +242,9 @@ def _routes_png(data: Rollout, mission: Mission, stats: MissionStats, fail_step:
             ax.annotate(f"rover {i} failed (t={s})", (x, y), xytext=(6, -12), textcoords="offset points", fontsize=8)
     for i in range(mission.params.num_rovers):
         ax.plot(*data.rover_pos[0, 0, i], marker="s", color="black", markersize=4)
-        ax.annotate(f"start {i}", tuple(data.rover_pos[0, 0, i]), xytext=(4, -10), textcoords="offset points", fontsize=7)
+        ax.annotate(
+            f"start {i}", tuple(data.rover_pos[0, 0, i]), xytext=(4, -10), textcoords="offset points", fontsize=7
+        )
     renderer.figure.savefig(path)
 
 
@@ -177,11 +270,30 @@ def run_mission(
     stats = MissionStats.of(data)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    files = {name: out / name for name in ("trajectories.csv", "metrics.csv", "metrics.md", "routes.png", f"mission.{animation}", "mission.png")}
+    files = {
+        name: out / name
+        for name in (
+            "trajectories.csv",
+            "metrics.csv",
+            "metrics.md",
+            "routes.png",
+            f"mission.{animation}",
+            "mission.png",
+        )
+    }
     trajectory = [
-        {"episode": e, "step": t, "rover": i, "x": float(x), "y": float(y), "working": bool(t < fail_step[i]),
-         "pois_observed": int(data.observed[e, t].sum())}
-        for e in range(episodes) for t in range(data.rover_pos.shape[1]) for i, (x, y) in enumerate(data.rover_pos[e, t])
+        {
+            "episode": e,
+            "step": t,
+            "rover": i,
+            "x": float(x),
+            "y": float(y),
+            "working": bool(t < fail_step[i]),
+            "pois_observed": int(data.observed[e, t].sum()),
+        }
+        for e in range(episodes)
+        for t in range(data.rover_pos.shape[1])
+        for i, (x, y) in enumerate(data.rover_pos[e, t])
     ]
     _write_rows(trajectory, files["trajectories.csv"])
     _write_rows(_metrics_rows(stats, mission), files["metrics.csv"])
@@ -207,7 +319,9 @@ def random_failures(key: jax.Array, finish: np.ndarray, num_rovers: int) -> np.n
     return fail_step
 
 
-def stress_rows(policies: list[Policy], mission: Mission, episodes: int, seed: int) -> tuple[list[dict[str, object]], dict]:
+def stress_rows(
+    policies: list[Policy], mission: Mission, episodes: int, seed: int
+) -> tuple[list[dict[str, object]], dict]:
     """For each policy, ``episodes`` episodes without failure, then the same episodes (same
     starts and keys) with one random rover failing at a random step before that policy's
     episode was complete (or before its end, if it never was). Rover and relative time are
@@ -248,7 +362,14 @@ def _stress_png(curves: dict, rows: list[dict[str, object]], mission: Mission, p
     figure.savefig(path)
 
 
-def stress_mission(mission_path: str | Path, policy_spec: str, out: str | Path, episodes: int = 500, seed: int = 0, policy_seed: int = 0) -> list[dict[str, object]]:
+def stress_mission(
+    mission_path: str | Path,
+    policy_spec: str,
+    out: str | Path,
+    episodes: int = 500,
+    seed: int = 0,
+    policy_seed: int = 0,
+) -> list[dict[str, object]]:
     """``mission stress``: the policy beside the oracle, without and with a random rover
     failure; writes stress.csv, stress.md and stress.png into ``out``. Returns the rows."""
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
@@ -259,14 +380,32 @@ def stress_mission(mission_path: str | Path, policy_spec: str, out: str | Path, 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     _write_rows(rows, out / "stress.csv")
-    header = ["policy", "condition", "success", "time to observe all (steps)", "POIs observed", "collisions", "trap contacts"]
-    body = [[r["policy"], r["condition"], f"{r['success']:.0%}", r["time_to_all"], r["pois_observed"], r["collisions"], r["trap_contacts"]] for r in rows]
+    header = [
+        "policy",
+        "condition",
+        "success",
+        "time to observe all (steps)",
+        "POIs observed",
+        "collisions",
+        "trap contacts",
+    ]
+    body = [
+        [
+            r["policy"],
+            r["condition"],
+            f"{r['success']:.0%}",
+            r["time_to_all"],
+            r["pois_observed"],
+            r["collisions"],
+            r["trap_contacts"],
+        ]
+        for r in rows
+    ]
     (out / "stress.md").write_text(
         f"# Mission '{mission.name}': one rover fails\n\n{episodes} episodes per row, seed {seed}. In the failure rows "
         "one rover, drawn uniformly, stops for good at a step drawn uniformly before the policy's own time to observe "
         "all POIs in that episode without failure (before the episode's end if it never does): a later failure would "
-        "change nothing. Time to observe all is the mean over successful episodes.\n\n"
-        + markdown_table(header, body)
+        "change nothing. Time to observe all is the mean over successful episodes.\n\n" + markdown_table(header, body)
     )
     _stress_png(curves, rows, mission, out / "stress.png")
     return rows

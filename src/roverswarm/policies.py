@@ -31,7 +31,8 @@ import numpy as np
 from flax import struct
 from scipy.optimize import linear_sum_assignment
 
-from roverswarm.algos.maddpg import AlgoConfig, ObsNorm, act
+from roverswarm.algos.learner import AlgoConfig, act
+from roverswarm.algos.normalize import ObsNorm
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, EnvState, other_rovers, trap_radii
 
 Plan = Any
@@ -56,7 +57,9 @@ class Policy:
 # ----------------------------------------------------------------------------- random
 
 
-def _random_act(key: jax.Array, obs: jax.Array, state: EnvState, plan: Plan, weights: Any, params: EnvParams) -> jax.Array:
+def _random_act(
+    key: jax.Array, obs: jax.Array, state: EnvState, plan: Plan, weights: Any, params: EnvParams
+) -> jax.Array:
     return jax.random.uniform(key, (params.num_rovers, ACTION_SIZE), minval=-1.0, maxval=1.0)
 
 
@@ -97,7 +100,9 @@ class OraclePlan:
 def _oracle_plan(states: EnvState, params: EnvParams) -> OraclePlan:
     rover = np.asarray(states.rover_pos)
     poi = np.asarray(states.poi_pos)
-    return OraclePlan(poi=jnp.asarray(np.stack([assign_pois(r, p) for r, p in zip(rover, poi)])), home=jnp.asarray(rover))
+    return OraclePlan(
+        poi=jnp.asarray(np.stack([assign_pois(r, p) for r, p in zip(rover, poi)])), home=jnp.asarray(rover)
+    )
 
 
 def oracle_goals(state: EnvState, plan: OraclePlan, params: EnvParams) -> jax.Array:
@@ -130,7 +135,9 @@ def oracle_goals(state: EnvState, plan: OraclePlan, params: EnvParams) -> jax.Ar
     return jnp.where((target >= 0)[:, None], state.poi_pos[jnp.maximum(target, 0)], assigned)
 
 
-def _steer_around(pos: jax.Array, vel_des: jax.Array, goal: jax.Array, obstacles: jax.Array, keep_out: jax.Array) -> jax.Array:
+def _steer_around(
+    pos: jax.Array, vel_des: jax.Array, goal: jax.Array, obstacles: jax.Array, keep_out: jax.Array
+) -> jax.Array:
     """Re-aim each rover's desired velocity [N, 2] along the tangent of any obstacle it would cross.
 
     ``obstacles`` [N, K, 2] are the centres each rover must keep ``keep_out`` [K] away from.
@@ -161,7 +168,9 @@ def _steer_around(pos: jax.Array, vel_des: jax.Array, goal: jax.Array, obstacles
     return heading * speed
 
 
-def _oracle_act(key: jax.Array, obs: jax.Array, state: EnvState, plan: OraclePlan, weights: Any, params: EnvParams) -> jax.Array:
+def _oracle_act(
+    key: jax.Array, obs: jax.Array, state: EnvState, plan: OraclePlan, weights: Any, params: EnvParams
+) -> jax.Array:
     goal = oracle_goals(state, plan, params)
     decay = 1.0 - params.damping
     gain = params.sensitivity / params.mass * params.dt  # velocity change per unit action
@@ -172,9 +181,10 @@ def _oracle_act(key: jax.Array, obs: jax.Array, state: EnvState, plan: OraclePla
     n, t = params.num_rovers, params.num_traps
     # traps last: a trap contact costs as much as a collision and is never needed
     obstacles = jnp.concatenate([next_pos[other_rovers(n)], jnp.broadcast_to(state.trap_pos, (n, t, 2))], axis=1)
-    keep_out = jnp.concatenate(
-        [jnp.full((n - 1,), 2 * params.rover_radius), trap_radii(params) + params.rover_radius]
-    ) + _KEEP_OUT_MARGIN
+    keep_out = (
+        jnp.concatenate([jnp.full((n - 1,), 2 * params.rover_radius), trap_radii(params) + params.rover_radius])
+        + _KEEP_OUT_MARGIN
+    )
     vel_des = _steer_around(next_pos, vel_des, goal, obstacles, keep_out)
     # scale rather than clip per component, so the steered direction is kept
     return _clip_norm((vel_des - decay * state.rover_vel) / gain, 1.0, ord=jnp.inf)
@@ -226,7 +236,14 @@ def _sub_policy_plan(num_policies: int, sub_policy: int | None, seed: int) -> Pl
     return plan
 
 
-def trained_policy(config: AlgoConfig, actor_params, name: str = "trained", sub_policy: int | None = None, seed: int = 0, obs_norm: ObsNorm | None = None) -> Policy:
+def trained_policy(
+    config: AlgoConfig,
+    actor_params,
+    name: str = "trained",
+    sub_policy: int | None = None,
+    seed: int = 0,
+    obs_norm: ObsNorm | None = None,
+) -> Policy:
     """The deterministic policy (no exploration noise) of trained actors [N * K, ...] (or [1, ...]
     shared), on observations standardised by ``obs_norm`` (runs with --normalize-obs). With
     ensembles (K > 1) every agent runs sub-policy ``sub_policy``, or, if None, one drawn per

@@ -72,284 +72,25 @@ Options for swarms (homogeneous rovers), each off by default and composable:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any, Literal
-
 import jax
 import jax.numpy as jnp
 import optax
-from flax import struct
 
-from roverswarm.algos.networks import MLP, GaussianPolicy, actor_forward, critic_forward
-from roverswarm.buffers.uniform import Transition
-from roverswarm.env.mars import ACTION_SIZE, other_rovers
-
-Algo = Literal["maddpg", "ddpg"]
-ALGOS: tuple[str, ...] = ("maddpg", "ddpg")
-OBS_CLIP = 10.0
-"""Standardised observations are clipped to [-OBS_CLIP, OBS_CLIP] (--normalize-obs)."""
-
-
-@dataclass(frozen=True)
-class AlgoConfig:
-    """Learner hyper-parameters. Defaults are tuned to learn with continuous actions (wider
-    networks, smaller learning rates than the reference code's 2x64 and 1e-2; see
-    ``roverswarm.config.REFERENCE``)."""
-
-    algo: Algo = "maddpg"
-    """`maddpg`: centralised critics Q_i(x, a_1..a_N); `ddpg`: local critics Q_i(o_i, a_i)."""
-    actor_lr: float = 1e-3
-    """Adam learning rate of the actors."""
-    critic_lr: float = 1e-3
-    """Adam learning rate of the critics."""
-    gamma: float = 0.95
-    """Discount factor."""
-    tau: float = 0.01
-    """Soft target update rate."""
-    grad_clip: float = 0.5
-    """Global gradient-norm clip of each network's update."""
-    hidden: tuple[int, ...] = (128, 128)
-    """Hidden layer widths of actors and critics (ReLU)."""
-    action_penalty: float = 1e-3
-    """Weight of the mean squared pre-tanh actor output in the actor loss."""
-    ensemble: int = 1
-    """Sub-policies per agent (policy ensembles, eq. 9-11): one drawn per agent per episode,
-    each learning from its own replay partition; 1 = plain MADDPG."""
-    infer_policies: bool = False
-    """MADDPG only: each agent learns Gaussian approximations of the other agents' policies
-    from the replay and uses them in its critic's target instead of their true policies (eq. 7-8)."""
-    infer_entropy: float = 1e-3
-    """lambda: weight of the entropy bonus in the approximations' loss (--infer-policies)."""
-    infer_window: int = 10_000
-    """--infer-policies: the approximations fit batches drawn from the newest this many
-    transitions of the replay, so they follow the others' current policies."""
-    share_parameters: bool = False
-    """One actor and one critic for all rovers, with the rover's one-hot index as an input and
-    the critic's view ordered own-first; every update learns from all rovers' batches.
-    Not with --ensemble > 1 or --infer-policies."""
-    twin_critics: bool = False
-    """Two critics per agent; the target takes the smaller of their estimates (TD3/MATD3)."""
-    target_noise: float = 0.0
-    """Std of the clipped Gaussian noise added to target actions (target-policy smoothing); 0 = off."""
-    target_noise_clip: float = 0.5
-    """Target-policy smoothing noise is clipped to [-this, this]."""
-    actor_delay: int = 1
-    """Critic updates per update of the actors and the target networks (TD3's delay; 1 = every time)."""
-    layer_norm: bool = False
-    """LayerNorm after every hidden layer of actors and critics."""
-    normalize_obs: bool = False
-    """Standardise observations by a running mean and variance (kept in checkpoints)."""
-    reward_scale: float = 1.0
-    """Rewards are multiplied by this before the critic's targets."""
-
-
-@struct.dataclass
-class ObsNorm:
-    """Running mean and variance of the observation entries (all rovers pooled)."""
-
-    mean: jax.Array  # [O]
-    var: jax.Array  # [O]
-    count: jax.Array  # [] float32, observations seen
-
-
-@struct.dataclass
-class LearnerState:
-    """Every agent's networks, targets and optimiser states, stacked on a leading group axis:
-    [N * K] for the actors (sub-policy k of agent i at i * K + k), [N] for the critics; [1]
-    for both with shared parameters. Twin critics add an axis of 2 after the group axis."""
-
-    actor: Any  # [N * K, ...]: sub-policy k of agent i at i * K + k
-    critic: Any  # [N, ...] or [N, 2, ...]
-    target_actor: Any  # [N * K, ...]
-    target_critic: Any  # [N, ...] or [N, 2, ...]
-    actor_opt: Any  # [N * K, ...]
-    critic_opt: Any  # [N, ...]
-    approx: Any = None  # [N, N, ...]: agent i's approximation of agent j's policy (inferred policies)
-    approx_opt: Any = None  # [N, N, ...]
-    obs_norm: ObsNorm | None = None  # --normalize-obs
-    updates: jax.Array | None = None  # [] int32 updates so far (--actor-delay > 1)
-
-
-def networks(config: AlgoConfig) -> tuple[MLP, MLP]:
-    """The (actor, critic) modules of ``config``."""
-    return MLP(config.hidden, ACTION_SIZE, config.layer_norm), MLP(config.hidden, 1, config.layer_norm)
-
-
-def optimizers(config: AlgoConfig) -> tuple[optax.GradientTransformation, optax.GradientTransformation]:
-    """Adam with global-norm clipping, for (actors, critics)."""
-    clip = optax.clip_by_global_norm(config.grad_clip)
-    return optax.chain(clip, optax.adam(config.actor_lr)), optax.chain(clip, optax.adam(config.critic_lr))
-
-
-def groups(config: AlgoConfig, num_agents: int) -> int:
-    """Critics (and actors per sub-policy) in the learner state: 1 if shared, else N."""
-    return 1 if config.share_parameters else num_agents
-
-
-def actor_inputs(config: AlgoConfig, obs: jax.Array) -> jax.Array:
-    """What the actors see of [..., N, O] observations: the observation, and with shared
-    parameters the rover's one-hot index after it ([..., N, O + N])."""
-    if not config.share_parameters:
-        return obs
-    n = obs.shape[-2]
-    return jnp.concatenate([obs, jnp.broadcast_to(jnp.eye(n, dtype=obs.dtype), (*obs.shape[:-2], n, n))], axis=-1)
-
-
-def critic_inputs(config: AlgoConfig, obs: jax.Array, actions: jax.Array, agent: jax.Array) -> jax.Array:
-    """What agent ``agent``'s critic sees: [B, N, O] observations and [B, N, A] actions -> [B, D].
-    Shared parameters: own-first order and the one-hot index appended."""
-    batch, n = obs.shape[:2]
-    if config.algo == "ddpg":
-        inputs = [obs[:, agent], actions[:, agent]]
-    elif config.share_parameters:
-        order = jnp.concatenate([agent[None], jnp.asarray(other_rovers(n))[agent]])
-        inputs = [obs[:, order].reshape(batch, -1), actions[:, order].reshape(batch, -1)]
-    else:
-        inputs = [obs.reshape(batch, -1), actions.reshape(batch, -1)]
-    if config.share_parameters:
-        inputs.append(jnp.broadcast_to(jax.nn.one_hot(agent, n, dtype=obs.dtype), (batch, n)))
-    return jnp.concatenate(inputs, axis=-1)
-
-
-def critic_values(config: AlgoConfig, params, inputs: jax.Array) -> jax.Array:
-    """Q [C, B] of critic inputs [B, D]: C = 2 with twin critics, else 1."""
-    _, critic_net = networks(config)
-    if config.twin_critics:
-        return jax.vmap(lambda p: critic_forward(critic_net, p, inputs))(params)
-    return critic_forward(critic_net, params, inputs)[None]
-
-
-def approximation(config: AlgoConfig) -> GaussianPolicy:
-    """The module of an inferred policy (a Gaussian over the action, same widths as the actor)."""
-    return GaussianPolicy(config.hidden, ACTION_SIZE)
-
-
-def init_learner(key: jax.Array, config: AlgoConfig, num_agents: int, obs_size: int) -> LearnerState:
-    """Fresh networks for ``num_agents`` agents; targets start equal to the online networks."""
-    actor_net, critic_net = networks(config)
-    actor_opt, critic_opt = optimizers(config)
-    k_actor, k_critic = jax.random.split(key)
-    obs = jnp.zeros((1, num_agents, obs_size))
-    actions = jnp.zeros((1, num_agents, ACTION_SIZE))
-    critic_in = critic_inputs(config, obs, actions, jnp.int32(0))
-    g = groups(config, num_agents)
-    actor = jax.vmap(actor_net.init, in_axes=(0, None))(jax.random.split(k_actor, g * config.ensemble), actor_inputs(config, obs)[:, 0])
-    critic_keys = jax.random.split(k_critic, g)
-    if config.twin_critics:
-        critic_keys = jax.vmap(lambda k: jax.random.split(k, 2))(critic_keys)
-        critic = jax.vmap(jax.vmap(critic_net.init, in_axes=(0, None)), in_axes=(0, None))(critic_keys, critic_in)
-    else:
-        critic = jax.vmap(critic_net.init, in_axes=(0, None))(critic_keys, critic_in)
-    approx = approx_opt = None
-    if config.infer_policies:
-        keys = jax.random.split(jax.random.fold_in(key, 2), num_agents * num_agents)
-        flat = jax.vmap(approximation(config).init, in_axes=(0, None))(keys, obs[:, 0])
-        approx = jax.tree.map(lambda x: x.reshape(num_agents, num_agents, *x.shape[1:]), flat)
-        approx_opt = jax.vmap(jax.vmap(optimizers(config)[0].init))(approx)
-    obs_norm = None
-    if config.normalize_obs:
-        obs_norm = ObsNorm(mean=jnp.zeros(obs_size), var=jnp.ones(obs_size), count=jnp.zeros(()))
-    return LearnerState(
-        approx=approx,
-        approx_opt=approx_opt,
-        actor=actor,
-        critic=critic,
-        # copies, not aliases: the training loop donates its state buffers
-        target_actor=jax.tree.map(jnp.copy, actor),
-        target_critic=jax.tree.map(jnp.copy, critic),
-        actor_opt=jax.vmap(actor_opt.init)(actor),
-        critic_opt=jax.vmap(critic_opt.init)(critic),
-        obs_norm=obs_norm,
-        updates=jnp.zeros((), jnp.int32) if config.actor_delay > 1 else None,
-    )
-
-
-# ----------------------------------------------------------------------------- observation normalisation
-
-
-def observe_batch(config: AlgoConfig, state: LearnerState, obs: jax.Array) -> LearnerState:
-    """With --normalize-obs, fold observations [..., O] into the running mean and variance
-    (Chan et al.'s parallel update); otherwise ``state`` unchanged."""
-    if not config.normalize_obs:
-        return state
-    norm = state.obs_norm
-    flat = obs.reshape(-1, obs.shape[-1])
-    n = jnp.asarray(flat.shape[0], jnp.float32)
-    mean, var = flat.mean(axis=0), flat.var(axis=0)
-    total = norm.count + n
-    delta = mean - norm.mean
-    new_mean = norm.mean + delta * n / total
-    m2 = norm.var * norm.count + var * n + jnp.square(delta) * norm.count * n / total
-    return state.replace(obs_norm=ObsNorm(mean=new_mean, var=m2 / total, count=total))
-
-
-def normalize(norm: ObsNorm | None, obs: jax.Array) -> jax.Array:
-    """Observations [..., O] standardised by ``norm`` and clipped to +-OBS_CLIP (unchanged if None)."""
-    if norm is None:
-        return obs
-    return jnp.clip((obs - norm.mean) / jnp.sqrt(norm.var + 1e-8), -OBS_CLIP, OBS_CLIP)
-
-
-def prepare(config: AlgoConfig, state: LearnerState, batch: Transition) -> Transition:
-    """A replay batch as the networks see it: observations standardised, rewards scaled."""
-    return batch.replace(
-        obs=normalize(state.obs_norm, batch.obs),
-        next_obs=normalize(state.obs_norm, batch.next_obs),
-        rewards=batch.rewards * config.reward_scale,
-    )
-
-
-# ----------------------------------------------------------------------------- acting
-
-
-def act(config: AlgoConfig, actor_params, obs: jax.Array, policy: jax.Array | None = None, obs_norm: ObsNorm | None = None) -> jax.Array:
-    """Deterministic actions of all agents: [..., N, O] observations -> [..., N, A] actions;
-    with ensembles (K > 1), of the sub-policies ``policy`` [..., N] the agents run;
-    with ``obs_norm``, on observations standardised by it."""
-    actor_net, _ = networks(config)
-    forward = lambda p, o: actor_forward(actor_net, p, o)[0]  # noqa: E731
-    inputs = actor_inputs(config, normalize(obs_norm, obs))
-    if config.share_parameters:
-        return forward(jax.tree.map(lambda x: x[0], actor_params), inputs)
-    if config.ensemble == 1:
-        return jax.vmap(forward, in_axes=(0, -2), out_axes=-2)(actor_params, inputs)
-    params = jax.tree.map(lambda x: x.reshape(-1, config.ensemble, *x.shape[1:]), actor_params)  # [N, K, ...]
-    every = jax.vmap(jax.vmap(forward, in_axes=(0, None), out_axes=-2), in_axes=(0, -2), out_axes=-3)(params, inputs)
-    return jnp.take_along_axis(every, policy[..., None, None], axis=-2)[..., 0, :]  # [..., N, K, A] -> [..., N, A]
-
-
-def smoothed(config: AlgoConfig, actions: jax.Array, key: jax.Array | None) -> jax.Array:
-    """Target actions with target-policy smoothing noise (unchanged if --target-noise is 0)."""
-    if config.target_noise == 0:
-        return actions
-    noise = config.target_noise * jax.random.normal(key, actions.shape)
-    return jnp.clip(actions + jnp.clip(noise, -config.target_noise_clip, config.target_noise_clip), -1.0, 1.0)
-
-
-def approx_actions(config: AlgoConfig, approx, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """One agent's approximations [N] of every agent's policy on [..., N, O]: mean and log-std [..., N, A]."""
-    return jax.vmap(approximation(config).apply, in_axes=(0, -2), out_axes=-2)(approx, obs)
-
-
-def _infer(config: AlgoConfig, approx, approx_opt, agent: jax.Array, batch: Transition):
-    """Agent ``agent``'s step on its approximations of the other agents' policies (eq. 7):
-    minimise -log N(a_j | mean_j(o_j), std_j) - lambda * entropy_j, for every j != agent.
-
-    Returns the new approximations, their optimiser state and the mean loss over the others."""
-    optimizer = optimizers(config)[0]
-    others = (jnp.arange(batch.actions.shape[-2]) != agent).astype(jnp.float32)
-
-    def loss(params, obs, actions):  # one other agent's approximation: [B, O], [B, A]
-        mean, log_std = approximation(config).apply(params, obs)
-        nll = 0.5 * jnp.square((actions - mean) * jnp.exp(-log_std)) + log_std + 0.5 * jnp.log(2 * jnp.pi)
-        entropy = log_std + 0.5 * jnp.log(2 * jnp.pi * jnp.e)
-        return jnp.mean(nll.sum(-1)) - config.infer_entropy * jnp.mean(entropy.sum(-1))
-
-    losses, grads = jax.vmap(jax.value_and_grad(loss), in_axes=(0, -2, -2))(approx, batch.obs, batch.actions)
-    grads = jax.tree.map(lambda g: g * others.reshape(-1, *([1] * (g.ndim - 1))), grads)  # its own: unused, left alone
-    updates, approx_opt = jax.vmap(optimizer.update)(grads, approx_opt, approx)
-    approx = optax.apply_updates(approx, updates)
-    return approx, approx_opt, (losses * others).sum() / jnp.maximum(others.sum(), 1.0)
+from roverswarm.algos.inference import approx_actions, fit_approximations, own_target_action
+from roverswarm.algos.learner import (
+    AlgoConfig,
+    LearnerState,
+    act,
+    actor_inputs,
+    critic_inputs,
+    critic_values,
+    networks,
+    optimizers,
+    prepare,
+    smoothed,
+)
+from roverswarm.algos.networks import actor_forward
+from roverswarm.buffers.base import Transition
 
 
 def inference_error(config: AlgoConfig, state: LearnerState, batch: Transition) -> jax.Array:
@@ -360,20 +101,10 @@ def inference_error(config: AlgoConfig, state: LearnerState, batch: Transition) 
     batch = prepare(config, state, batch)
     joint = jax.tree.map(lambda x: x.reshape(num_agents, -1, *x.shape[2:]), batch)  # [N, K * B, ...]
     true = act(config, state.actor, joint.obs, joint.policy)  # [N, K * B, N, A]
-    guess = jax.vmap(lambda approx, obs: approx_actions(config, approx, obs)[0])(state.approx, joint.obs)
+    guess = jax.vmap(lambda approx, obs: approx_actions(config.hidden, approx, obs)[0])(state.approx, joint.obs)
     gap = jnp.abs(guess - true).mean(axis=(1, 3))  # [N (agent i), N (other j)]
     others = 1.0 - jnp.eye(num_agents)
     return (gap * others).sum(-1) / jnp.maximum(others.sum(-1), 1.0)
-
-
-def _own_target_action(config: AlgoConfig, target_actors, agent: jax.Array, obs: jax.Array, policy: jax.Array | None) -> jax.Array:
-    """Agent ``agent``'s target action [B, A] (of the sub-policy it ran) on observations
-    [B, N, O], reading no other agent's target actor."""
-    actor_net, _ = networks(config)
-    own = jax.tree.map(lambda x: jax.lax.dynamic_slice_in_dim(x, agent * config.ensemble, config.ensemble), target_actors)
-    every = jax.vmap(lambda p: actor_forward(actor_net, p, obs[:, agent])[0])(own)  # [K, B, A]
-    chosen = jnp.zeros(obs.shape[0], jnp.int32) if policy is None else policy[:, agent]
-    return jnp.take_along_axis(every, chosen[None, :, None], axis=0)[0]
 
 
 def polyak(target, online, tau: float):
@@ -389,14 +120,20 @@ def _select(flag: jax.Array, new, old):
 # ----------------------------------------------------------------------------- losses of one agent
 
 
-def _td_target(config: AlgoConfig, target_critic, agent: jax.Array, batch: Transition, next_actions: jax.Array) -> jax.Array:
+def _td_target(
+    config: AlgoConfig, target_critic, agent: jax.Array, batch: Transition, next_actions: jax.Array
+) -> jax.Array:
     """y [B] of agent ``agent`` (eq. 6; twin critics: the smaller target estimate)."""
-    next_q = critic_values(config, target_critic, critic_inputs(config, batch.next_obs, next_actions, agent)).min(axis=0)
+    next_q = critic_values(config, target_critic, critic_inputs(config, batch.next_obs, next_actions, agent)).min(
+        axis=0
+    )
     not_done = 1.0 - batch.terminated.astype(jnp.float32)
     return jax.lax.stop_gradient(batch.rewards[:, agent] + config.gamma * not_done * next_q)
 
 
-def _critic_loss(config: AlgoConfig, critic, agent: jax.Array, batch: Transition, target: jax.Array, weights: jax.Array):
+def _critic_loss(
+    config: AlgoConfig, critic, agent: jax.Array, batch: Transition, target: jax.Array, weights: jax.Array
+):
     """(weighted mean squared TD error, summed over twin critics; (first critic's TD loss [B], its Q [B]))."""
     q = critic_values(config, critic, critic_inputs(config, batch.obs, batch.actions, agent))  # [C, B]
     td = jnp.square(q - target)
@@ -418,7 +155,9 @@ def _apply(optimizer: optax.GradientTransformation, grads, opt_state, params):
     return optax.apply_updates(params, updates), opt_state
 
 
-def _finish(config: AlgoConfig, state: LearnerState, actor, actor_opt, critic, critic_opt, due: jax.Array, **extra) -> LearnerState:
+def _finish(
+    config: AlgoConfig, state: LearnerState, actor, actor_opt, critic, critic_opt, due: jax.Array, **extra
+) -> LearnerState:
     """The state after an update: new critics; new actors and soft target updates where ``due``
     (every --actor-delay updates)."""
     actor, actor_opt = _select(due, (actor, actor_opt), (state.actor, state.actor_opt))
@@ -437,7 +176,15 @@ def _finish(config: AlgoConfig, state: LearnerState, actor, actor_opt, critic, c
 
 
 def _agent_update(
-    config: AlgoConfig, state: LearnerState, agent: jax.Array, batch: Transition, weights: jax.Array, target_actors, recent: Transition | None, key: jax.Array, due: jax.Array
+    config: AlgoConfig,
+    state: LearnerState,
+    agent: jax.Array,
+    batch: Transition,
+    weights: jax.Array,
+    target_actors,
+    recent: Transition | None,
+    key: jax.Array,
+    due: jax.Array,
 ):
     """One agent's update with its own networks: its slice of ``state`` (its K sub-policies),
     its K batches [K, B, ...] (one per partition), every agent's ``target_actors`` [N * K] and,
@@ -448,9 +195,13 @@ def _agent_update(
 
     approx, approx_opt = state.approx, state.approx_opt
     if config.infer_policies:  # eq. 8: the others' approximations, its own target actor
-        approx, approx_opt, info["infer_loss"] = _infer(config, approx, approx_opt, agent, recent)
-        inferred = approx_actions(config, approx, joint.next_obs)[0]
-        own = _own_target_action(config, target_actors, agent, joint.next_obs, joint.policy)
+        approx, approx_opt, info["infer_loss"] = fit_approximations(
+            config.hidden, optimizers(config)[0], config.infer_entropy, approx, approx_opt, agent, recent
+        )
+        inferred = approx_actions(config.hidden, approx, joint.next_obs)[0]
+        own = own_target_action(
+            networks(config)[0], config.ensemble, target_actors, agent, joint.next_obs, joint.policy
+        )
         next_actions = inferred.at[:, agent].set(own)
     else:
         next_actions = act(config, target_actors, joint.next_obs, joint.policy)  # [K * B, N, A]
@@ -465,12 +216,16 @@ def _agent_update(
     a_loss, a_grads = jax.vmap(jax.value_and_grad(scaled))(state.actor, batch.obs, batch.actions, active)
     actor, actor_opt_state = jax.vmap(lambda g, o, p: _apply(actor_opt, g, o, p))(a_grads, state.actor_opt, state.actor)
 
-    new_state = _finish(config, state, actor, actor_opt_state, critic, critic_opt_state, due, approx=approx, approx_opt=approx_opt)
+    new_state = _finish(
+        config, state, actor, actor_opt_state, critic, critic_opt_state, due, approx=approx, approx_opt=approx_opt
+    )
     info.update(critic_loss=c_loss, actor_loss=a_loss.mean(), q_mean=jnp.mean(q), td_loss=td.reshape(weights.shape))
     return new_state, info
 
 
-def _shared_update(config: AlgoConfig, state: LearnerState, batch: Transition, weights: jax.Array, key: jax.Array, due: jax.Array):
+def _shared_update(
+    config: AlgoConfig, state: LearnerState, batch: Transition, weights: jax.Array, key: jax.Array, due: jax.Array
+):
     """One step of the shared actor and critic on every agent's batch [N, B, ...]: each
     agent's losses as in :func:`_agent_update`, averaged over agents."""
     actor_opt, critic_opt = optimizers(config)
@@ -480,12 +235,16 @@ def _shared_update(config: AlgoConfig, state: LearnerState, batch: Transition, w
     keys = jax.random.split(key, num_agents) if config.target_noise > 0 else jnp.zeros(num_agents)
 
     def target(agent, b, k):
-        return _td_target(config, one(state.target_critic), agent, b, smoothed(config, act(config, state.target_actor, b.next_obs), k))
+        return _td_target(
+            config, one(state.target_critic), agent, b, smoothed(config, act(config, state.target_actor, b.next_obs), k)
+        )
 
     targets = jax.vmap(target)(agents, batch, keys)  # [N, B]
 
     def critic_loss(params):
-        losses, aux = jax.vmap(lambda i, b, y, w: _critic_loss(config, params, i, b, y, w))(agents, batch, targets, weights)
+        losses, aux = jax.vmap(lambda i, b, y, w: _critic_loss(config, params, i, b, y, w))(
+            agents, batch, targets, weights
+        )
         return losses.mean(), (losses, aux)
 
     (_, (c_loss, (td, q))), c_grads = jax.value_and_grad(critic_loss, has_aux=True)(one(state.critic))
@@ -498,7 +257,9 @@ def _shared_update(config: AlgoConfig, state: LearnerState, batch: Transition, w
     (_, a_loss), a_grads = jax.value_and_grad(actor_loss, has_aux=True)(one(state.actor))
     actor, actor_opt_state = _apply(actor_opt, a_grads, one(state.actor_opt), one(state.actor))
     group = lambda tree: jax.tree.map(lambda x: x[None], tree)  # noqa: E731
-    new_state = _finish(config, state, group(actor), group(actor_opt_state), group(critic), group(critic_opt_state), due)
+    new_state = _finish(
+        config, state, group(actor), group(actor_opt_state), group(critic), group(critic_opt_state), due
+    )
     return new_state, dict(critic_loss=c_loss, actor_loss=a_loss, q_mean=q.mean(-1), td_loss=td)
 
 
@@ -537,12 +298,26 @@ def update(
         by_agent = lambda tree: jax.tree.map(lambda x: x.reshape(-1, config.ensemble, *x.shape[1:]), tree)  # noqa: E731
         flat = lambda tree: jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), tree)  # noqa: E731
         sliced = state.replace(
-            actor=by_agent(state.actor), target_actor=by_agent(state.target_actor), actor_opt=by_agent(state.actor_opt), obs_norm=None, updates=None
+            actor=by_agent(state.actor),
+            target_actor=by_agent(state.target_actor),
+            actor_opt=by_agent(state.actor_opt),
+            obs_norm=None,
+            updates=None,
         )
         num_agents = num_groups // config.ensemble
         keys = jax.random.split(key, num_agents) if config.target_noise > 0 else jnp.zeros(num_agents)
         per_agent = jax.vmap(_agent_update, in_axes=(None, 0, 0, 0, 0, None, None, 0, None))
-        new, info = per_agent(config, sliced, jnp.arange(num_agents), by_agent(batch), by_agent(weights), state.target_actor, recent, keys, due)
+        new, info = per_agent(
+            config,
+            sliced,
+            jnp.arange(num_agents),
+            by_agent(batch),
+            by_agent(weights),
+            state.target_actor,
+            recent,
+            keys,
+            due,
+        )
         new = new.replace(actor=flat(new.actor), target_actor=flat(new.target_actor), actor_opt=flat(new.actor_opt))
         info["td_loss"] = flat(info["td_loss"])
     if state.updates is not None:

@@ -48,7 +48,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from roverswarm.buffers.uniform import Buffer, BufferState, Draw, Transition, empty_state, nth_stored, population, write
+from roverswarm.buffers.base import Buffer, BufferState, Draw, Transition, empty_state, nth_stored, population, write
 
 LOSS_BINS = 2**14
 """float32 bit pattern >> 17: sign-free exponent and top 6 mantissa bits, 64 bins per octave."""
@@ -122,7 +122,12 @@ def _tables(loss: jax.Array, valid: jax.Array, capacity: int, alpha: float):
     share = jnp.pad(weights / jnp.maximum(total, 1e-30)[:, None], ((0, 0), (0, _padded(capacity) - capacity)))
     slot_sums = _running_sums(share.reshape(groups, -1, FAN_OUT))
     group_sums = _running_sums(slot_sums[:, :, -1].reshape(groups, -1, FAN_OUT))
-    return slot_sums.reshape(groups, -1), group_sums.reshape(groups, -1), jnp.cumsum(group_sums[:, :, -1], axis=1), total
+    return (
+        slot_sums.reshape(groups, -1),
+        group_sums.reshape(groups, -1),
+        jnp.cumsum(group_sums[:, :, -1], axis=1),
+        total,
+    )
 
 
 def _descend(sums: jax.Array, row: jax.Array, target: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -157,7 +162,9 @@ def _region_share(slot_sums, group_sums, block_cdf, start: jax.Array, count: jax
     return jnp.where(count >= capacity, 1.0, inside + wrapped)
 
 
-def _fresh_share(fresh: jax.Array, live: jax.Array, ranked: jax.Array, ranked_weight: jax.Array, alpha: float) -> jax.Array:
+def _fresh_share(
+    fresh: jax.Array, live: jax.Array, ranked: jax.Array, ranked_weight: jax.Array, alpha: float
+) -> jax.Array:
     """[G] share of the ranked part that goes to the ``fresh`` transitions (tied at the top).
 
     Their weight is ``n * (top / M_r)^alpha`` beside the ``ranked`` ones' ``sum (rank / M_r)^alpha``,
@@ -170,7 +177,9 @@ def _fresh_share(fresh: jax.Array, live: jax.Array, ranked: jax.Array, ranked_we
 
 
 @functools.lru_cache(maxsize=None)
-def ranked_buffer(capacity: int, batch_size: int, num_agents: int, alpha: float, beta: float, num_policies: int = 1) -> Buffer:
+def ranked_buffer(
+    capacity: int, batch_size: int, num_agents: int, alpha: float, beta: float, num_policies: int = 1
+) -> Buffer:
     """The experience sample optimizer with amplification ``alpha`` and uniform share ``beta``,
     for ``num_policies`` sub-policies per agent.
 
@@ -232,7 +241,9 @@ def ranked_buffer(capacity: int, batch_size: int, num_agents: int, alpha: float,
         # only the rank state and the sub-policies pass through the branch, so the replay
         # data is never copied
         keep = lambda extra, *_: extra  # noqa: E731
-        extra = jax.lax.cond(due, rerank, keep, state.extra, state.size, state.position, state.data.policy, state.partitions)
+        extra = jax.lax.cond(
+            due, rerank, keep, state.extra, state.size, state.position, state.data.policy, state.partitions
+        )
         return state.replace(extra=extra)
 
     def ranked_draw(slot_sums, group_sums, block_cdf, first: jax.Array, second: jax.Array) -> jax.Array:
@@ -255,7 +266,9 @@ def ranked_buffer(capacity: int, batch_size: int, num_agents: int, alpha: float,
         # (one call: every call of the counter-based generator is its own loop on CPU)
         pick_bits, slot_bits, age_bits = jax.random.bits(key, (3, batch_size), jnp.uint32)
         pick, within = _unit_float(pick_bits), _unit_float(slot_bits)
-        stored = lambda count: nth_stored(state, (age_bits % jnp.maximum(count, 1).astype(jnp.uint32)).astype(jnp.int32), ring, head)  # noqa: E731
+        stored = lambda count: nth_stored(
+            state, (age_bits % jnp.maximum(count, 1).astype(jnp.uint32)).astype(jnp.int32), ring, head
+        )  # noqa: E731
         extra = state.extra
         top = beta + (1.0 - beta) * fresh_share  # [0, beta): uniform, [beta, top): fresh
         rescaled = jnp.clip((pick - top) / jnp.maximum(1.0 - top, 1e-30), 0.0, 1.0)
@@ -289,9 +302,19 @@ def ranked_buffer(capacity: int, batch_size: int, num_agents: int, alpha: float,
             ranked, ring, head = jnp.broadcast_to(extra.ranked_size, (groups,)), None, None
             fresh = jnp.broadcast_to(extra.fresh, (groups,))
         shares = _fresh_share(fresh, live, ranked, extra.ranked_weight, alpha)
-        indices, probabilities = jax.vmap(sample_group, in_axes=(None, 0, 0, 0, 0, 0, 0, 0, 0 if partitioned else None, 0 if partitioned else None))(
-            state, jax.random.split(key, groups), extra.slot_sums, extra.group_sums, extra.block_cdf, shares,
-            live, fresh, ring, head,
+        indices, probabilities = jax.vmap(
+            sample_group, in_axes=(None, 0, 0, 0, 0, 0, 0, 0, 0 if partitioned else None, 0 if partitioned else None)
+        )(
+            state,
+            jax.random.split(key, groups),
+            extra.slot_sums,
+            extra.group_sums,
+            extra.block_cdf,
+            shares,
+            live,
+            fresh,
+            ring,
+            head,
         )
         return Draw(indices, probabilities, live)
 

@@ -109,7 +109,12 @@ def validate_params(params: EnvParams) -> EnvParams:
             f"{name} must be a number or one value per {what} ({count}), got shape {radius.shape}",
         )
         require(bool(np.all(radius > 0)), f"{name} must be positive, got {radius}")
-    for name, rows in (("fixed_pois", params.num_pois), ("fixed_traps", params.num_traps), ("fixed_starts", params.num_rovers), ("start_zone", 2)):
+    for name, rows in (
+        ("fixed_pois", params.num_pois),
+        ("fixed_traps", params.num_traps),
+        ("fixed_starts", params.num_rovers),
+        ("start_zone", 2),
+    ):
         value = getattr(params, name)
         require(
             value is None or np.shape(value) == (rows, 2),
@@ -179,7 +184,9 @@ def reset(key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
         rover_cand = jax.random.uniform(k_rover, (n, _LAYOUT_CANDIDATES, 2), minval=-size, maxval=size)
         rover_pos = _first_clear(rover_cand, trap_pos, trap_radius + params.rover_radius)
     elif rover_pos is None:  # a release zone is crowded: each rover also keeps clear of those placed before it
-        rover_cand = jax.random.uniform(k_rover, (n, _LAYOUT_CANDIDATES, 2), minval=params.start_zone[0], maxval=params.start_zone[1])
+        rover_cand = jax.random.uniform(
+            k_rover, (n, _LAYOUT_CANDIDATES, 2), minval=params.start_zone[0], maxval=params.start_zone[1]
+        )
         rover_pos = jnp.zeros((0, 2))
         for i in range(n):
             clearance = jnp.concatenate([trap_radius + params.rover_radius, jnp.full((i,), 2 * params.rover_radius)])
@@ -200,9 +207,9 @@ def reset(key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
 
 def other_rovers(num_rovers: int) -> np.ndarray:
     """[N, N - 1] int: row i lists every rover but i, in index order."""
-    return np.array(
-        [[j for j in range(num_rovers) if j != i] for i in range(num_rovers)], dtype=np.int32
-    ).reshape(num_rovers, num_rovers - 1)
+    return np.array([[j for j in range(num_rovers) if j != i] for i in range(num_rovers)], dtype=np.int32).reshape(
+        num_rovers, num_rovers - 1
+    )
 
 
 def observe(state: EnvState, params: EnvParams) -> jax.Array:
@@ -212,15 +219,11 @@ def observe(state: EnvState, params: EnvParams) -> jax.Array:
     pos = state.rover_pos
     rel = lambda targets: (targets[None, :, :] - pos[:, None, :]).reshape(n, -1)  # noqa: E731
     rel_others = (pos[other_rovers(n)] - pos[:, None, :]).reshape(n, -1)
-    return jnp.concatenate(
-        [state.rover_vel, pos, rel(state.poi_pos), rel(state.trap_pos), rel_others], axis=-1
-    )
+    return jnp.concatenate([state.rover_vel, pos, rel(state.poi_pos), rel(state.trap_pos), rel_others], axis=-1)
 
 
 def _observed_now(state: EnvState, params: EnvParams) -> jax.Array:
-    return state.observed | jnp.any(
-        _pairwise_dist(state.rover_pos, state.poi_pos) < observe_radii(params), axis=0
-    )
+    return state.observed | jnp.any(_pairwise_dist(state.rover_pos, state.poi_pos) < observe_radii(params), axis=0)
 
 
 def contact_forces(pos: jax.Array, params: EnvParams) -> jax.Array:
@@ -239,9 +242,7 @@ def check_actions(actions: jax.Array, params: EnvParams) -> None:
     """Raise :class:`UserError` unless ``actions`` has shape ``[N, 2]`` (checked at trace time)."""
     expected = (params.num_rovers, ACTION_SIZE)
     if tuple(actions.shape) != expected:
-        raise UserError(
-            f"actions must have shape {expected} (one 2-D force per rover), got {tuple(actions.shape)}"
-        )
+        raise UserError(f"actions must have shape {expected} (one 2-D force per rover), got {tuple(actions.shape)}")
 
 
 def step_env(

@@ -58,7 +58,9 @@ class Mission:
 
 
 def _fields(entry: Any, where: str, required: set[str], optional: set[str]) -> dict[str, Any]:
-    require(isinstance(entry, dict), f"{where}: expected a mapping with fields {sorted(required | optional)}, got {entry!r}")
+    require(
+        isinstance(entry, dict), f"{where}: expected a mapping with fields {sorted(required | optional)}, got {entry!r}"
+    )
     for name in sorted(required - entry.keys()):
         raise UserError(f"{where}: missing field '{name}'")
     for name in sorted(entry.keys() - required - optional, key=str):
@@ -105,7 +107,10 @@ def _entries(data: dict, key: str, size: float) -> tuple[list[str], np.ndarray, 
         label = f"{key}[{i}]"
         _fields(entry, label, {"position"}, {"name", "radius"})
         name = _name(entry["name"], f"{label} name") if "name" in entry else f"{key[:-1]}-{i}"
-        require(name not in names, f"{label}: the name '{name}' is already used by {key}[{names.index(name) if name in names else 0}]")
+        require(
+            name not in names,
+            f"{label}: the name '{name}' is already used by {key}[{names.index(name) if name in names else 0}]",
+        )
         label += f" '{name}'" if "name" in entry else ""
         names.append(name)
         positions.append(_point(entry["position"], f"{label} position", size))
@@ -116,19 +121,33 @@ def _entries(data: dict, key: str, size: float) -> tuple[list[str], np.ndarray, 
 def _rovers(data: dict, size: float) -> tuple[int, np.ndarray | None, np.ndarray | None]:
     """Rover count, fixed starts [N, 2] (or None) and release zone [2, 2] (or None)."""
     rovers = _fields(data["rovers"], "rovers", set(), {"start", "count", "release_zone"})
-    require(("start" in rovers) != ("release_zone" in rovers), "rovers: give either 'start' (a list of positions) or 'release_zone' (with 'count')")
+    require(
+        ("start" in rovers) != ("release_zone" in rovers),
+        "rovers: give either 'start' (a list of positions) or 'release_zone' (with 'count')",
+    )
     if "start" in rovers:
         starts = rovers["start"]
-        require(isinstance(starts, list) and len(starts) > 0, f"rovers.start: expected a non-empty list of positions, got {starts!r}")
+        require(
+            isinstance(starts, list) and len(starts) > 0,
+            f"rovers.start: expected a non-empty list of positions, got {starts!r}",
+        )
         count = rovers.get("count", len(starts))
-        require(type(count) is int and count == len(starts), f"rovers.count ({count!r}) differs from the {len(starts)} start positions")
+        require(
+            type(count) is int and count == len(starts),
+            f"rovers.count ({count!r}) differs from the {len(starts)} start positions",
+        )
         points = [_point(p, f"rovers.start[{i}]", size) for i, p in enumerate(starts)]
         return len(points), np.array(points, np.float32), None
     count = rovers.get("count")
-    require(isinstance(count, int) and not isinstance(count, bool) and count >= 1, f"rovers.count: must be an integer >= 1 with a release_zone, got {count!r}")
+    require(
+        isinstance(count, int) and not isinstance(count, bool) and count >= 1,
+        f"rovers.count: must be an integer >= 1 with a release_zone, got {count!r}",
+    )
     zone = _fields(rovers["release_zone"], "rovers.release_zone", {"low", "high"}, set())
     low, high = (_point(zone[k], f"rovers.release_zone.{k}", size) for k in ("low", "high"))
-    require(low[0] < high[0] and low[1] < high[1], f"rovers.release_zone: low {low} must be below and left of high {high}")
+    require(
+        low[0] < high[0] and low[1] < high[1], f"rovers.release_zone: low {low} must be below and left of high {high}"
+    )
     side = 2 * EnvParams().rover_radius
     require(
         (high[0] - low[0]) * (high[1] - low[1]) >= 2 * count * side**2,
@@ -142,13 +161,27 @@ def _check_clear(starts: np.ndarray, traps: np.ndarray, trap_radii: np.ndarray, 
     for i, start in enumerate(starts):
         for j, (trap, radius) in enumerate(zip(traps, trap_radii)):
             gap = float(np.linalg.norm(start - trap)) - radius - rover_radius
-            require(gap >= 0, f"rovers.start[{i}] overlaps traps[{j}]: a rover (radius {rover_radius:g}) there would start in the crater")
+            require(
+                gap >= 0,
+                f"rovers.start[{i}] overlaps traps[{j}]: a rover (radius {rover_radius:g}) there "
+                "would start in the crater",
+            )
         for k in range(i):
             gap = float(np.linalg.norm(start - starts[k])) - 2 * rover_radius
-            require(gap >= 0, f"rovers.start[{i}] overlaps rovers.start[{k}]: starts must be at least {2 * rover_radius:g} apart")
+            require(
+                gap >= 0,
+                f"rovers.start[{i}] overlaps rovers.start[{k}]: starts must be at least {2 * rover_radius:g} apart",
+            )
 
 
-def _check_observable(names: list[str], pois: np.ndarray, observe: np.ndarray, traps: np.ndarray, trap_radii: np.ndarray, rover_radius: float) -> None:
+def _check_observable(
+    names: list[str],
+    pois: np.ndarray,
+    observe: np.ndarray,
+    traps: np.ndarray,
+    trap_radii: np.ndarray,
+    rover_radius: float,
+) -> None:
     """Refuse a POI that no rover can observe without touching a trap: every point within its
     observation radius is closer to the trap's centre than trap radius + rover radius."""
     for i, (poi, reach) in enumerate(zip(pois, observe)):
@@ -156,8 +189,10 @@ def _check_observable(names: list[str], pois: np.ndarray, observe: np.ndarray, t
             clear = float(radius) + rover_radius - float(reach)  # the POI must be farther than this from the trap
             require(
                 float(np.linalg.norm(poi - trap)) > clear,
-                f"pois[{i}] '{names[i]}' cannot be observed without touching traps[{j}]: a rover (radius {rover_radius:g}) "
-                f"within {float(reach):g} of it would be in the crater; move it more than {clear:g} from the trap's centre "
+                f"pois[{i}] '{names[i]}' cannot be observed without touching traps[{j}]: a rover "
+                f"(radius {rover_radius:g}) "
+                f"within {float(reach):g} of it would be in the crater; move it more than {clear:g} "
+                "from the trap's centre "
                 "or give it a larger radius",
             )
 
@@ -167,7 +202,10 @@ def parse_mission(data: Any, name: str = "mission") -> Mission:
     _fields(data, "mission file", {"rovers", "pois"}, _TOP_FIELDS - {"rovers", "pois"})
     size = _positive(data.get("map_size", 1.0), "map_size")
     steps = data.get("episode_length", 25)
-    require(isinstance(steps, int) and not isinstance(steps, bool) and steps >= 1, f"episode_length: must be an integer >= 1, got {steps!r}")
+    require(
+        isinstance(steps, int) and not isinstance(steps, bool) and steps >= 1,
+        f"episode_length: must be an integer >= 1, got {steps!r}",
+    )
     stop = data.get("stop_when_complete", True)
     require(isinstance(stop, bool), f"stop_when_complete: must be true or false, got {stop!r}")
     poi_names, pois, observe = _entries(data, "pois", size)

@@ -120,7 +120,10 @@ class RoverSwarmEnv(ParallelEnv):
             self._renderer = FrameRenderer(self.params)
         s = self._state
         return self._renderer.frame(
-            np.stack(self._trail), np.asarray(s.poi_pos), np.asarray(s.trap_pos), np.asarray(s.observed),
+            np.stack(self._trail),
+            np.asarray(s.poi_pos),
+            np.asarray(s.trap_pos),
+            np.asarray(s.observed),
             f"step {int(s.time)}/{self.params.max_steps}",
         )
 

@@ -1,17 +1,15 @@
-"""Drawing episodes: rovers with their trails, POIs (filled once observed) and traps.
+"""Drawing the environment: rovers with their trails, POIs (filled once observed) and traps.
 
-One :class:`FrameRenderer` (a reused off-screen matplotlib figure) turns a state into an RGB
-array; :func:`save_animation` writes frames as GIF or MP4; :func:`render_episode` is the
-``roverswarm render`` command as a function.
+One :class:`FrameRenderer` (a reused off-screen matplotlib figure) turns positions into an
+RGB array; :func:`save_animation` writes frames as GIF or MP4. Episodes of a policy are
+drawn by :mod:`roverswarm.animation` (above the environment: it runs policies).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import imageio.v2 as imageio
-import jax
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
@@ -19,8 +17,6 @@ from matplotlib.patches import Circle
 
 from roverswarm.env.mars import EnvParams, observe_radii, trap_radii
 from roverswarm.errors import UserError
-from roverswarm.evaluate import Rollout, rollout
-from roverswarm.policies import Policy
 
 ANIMATION_SUFFIXES = (".gif", ".mp4")
 _ROVER_COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#d62728", "#e377c2", "#17becf", "#bcbd22")
@@ -90,39 +86,3 @@ def save_animation(frames: list[np.ndarray], path: Path, fps: int = 8) -> Path:
     png = path.with_suffix(".png")
     imageio.imwrite(png, frames[-1])
     return png
-
-
-@dataclass(frozen=True)
-class EpisodeFrames:
-    """The frames of one episode and its total reward."""
-
-    frames: list[np.ndarray]
-    episode_reward: float
-
-
-def episode_frames(data: Rollout, params: EnvParams, episode: int = 0, label: str = "") -> EpisodeFrames:
-    """Frames of episode ``episode`` of a rollout, one per step
-    (the start included), titled with the step and the reward so far."""
-    renderer = FrameRenderer(params)
-    rewards = data.rewards[episode].sum(axis=-1)  # [T]
-    frames = []
-    for t in range(data.rover_pos.shape[1]):
-        title = f"{label}  step {t}/{params.max_steps}  reward {rewards[:t].sum():.1f}".strip()
-        frames.append(
-            renderer.frame(
-                data.rover_pos[episode, : t + 1],
-                data.poi_pos[episode],
-                data.trap_pos[episode],
-                data.observed[episode, t],
-                title,
-            )
-        )
-    return EpisodeFrames(frames, float(rewards.sum()))
-
-
-def render_episode(params: EnvParams, policy: Policy, out: Path, seed: int = 0, label: str = "") -> Path:
-    """Run one episode of ``policy`` and write it to ``out`` (GIF/MP4) plus a PNG of the last
-    frame. Returns the PNG path."""
-    check_animation_path(Path(out))
-    episode = rollout(policy, jax.random.PRNGKey(seed), params, num_episodes=1)
-    return save_animation(episode_frames(episode, params, 0, label).frames, Path(out))

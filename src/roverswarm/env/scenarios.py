@@ -24,7 +24,9 @@ class Scenario:
 
 def _paper(n: int) -> Scenario:
     what = "paper experiment" if n <= 5 else "larger swarm"
-    return Scenario(f"paper-{n}", EnvParams(num_rovers=n, num_pois=n, num_traps=n), f"{what}: {n} rovers, {n} POIs, {n} traps")
+    return Scenario(
+        f"paper-{n}", EnvParams(num_rovers=n, num_pois=n, num_traps=n), f"{what}: {n} rovers, {n} POIs, {n} traps"
+    )
 
 
 SCENARIOS: dict[str, Scenario] = {

@@ -9,7 +9,6 @@ worker dies; either way the files land in the same folders and the same report.
 
 from __future__ import annotations
 
-import dataclasses
 import shutil
 import tempfile
 import time
@@ -23,9 +22,9 @@ from rich.table import Table
 
 from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
-from roverswarm.train import (
-    CHECKPOINT, CONFIG, METRICS, REFERENCE, TrainConfig, config_from_json, config_to_json, read_metrics, train, validate,
-)
+from roverswarm.config import REFERENCE, TrainConfig, config_from_json, config_to_json, with_options, validate
+from roverswarm.runs import CHECKPOINT, CONFIG, METRICS, read_metrics
+from roverswarm.trainer import train
 
 ALGORITHMS: dict[str, dict[str, str]] = {
     "ddpg": {"algo": "ddpg", "replay": "uniform"},
@@ -75,7 +74,7 @@ class ReproduceConfig:
 
 
 @dataclass(frozen=True)
-class Run:
+class GridRun:
     """One cell of the grid."""
 
     scenario: str
@@ -88,7 +87,7 @@ class Run:
         return f"{self.scenario} {self.algorithm}"
 
 
-def plan(config: ReproduceConfig, base: TrainConfig = REFERENCE) -> list[Run]:
+def plan(config: ReproduceConfig, base: TrainConfig = REFERENCE) -> list[GridRun]:
     """The runs of the grid, at the settings of ``base`` (default: the reference, i.e. the
     paper's), after checking the input."""
     require(len(config.scenarios) > 0, "--scenarios: give at least one scenario")
@@ -104,26 +103,28 @@ def plan(config: ReproduceConfig, base: TrainConfig = REFERENCE) -> list[Run]:
     for scenario in config.scenarios:
         for algorithm in config.algorithms:
             settings = ALGORITHMS[algorithm]
-            train_config = dataclasses.replace(
+            train_config = with_options(
                 base,
-                scenario=scenario,
-                learner=dataclasses.replace(base.learner, algo=settings["algo"]),
-                replay=settings["replay"],
-                episodes=config.grid_episodes,
-                seeds=config.grid_seeds,
-                seed=config.seed,
-                log_every=500 if config.quick else base.log_every,
+                dict(
+                    scenario=scenario,
+                    algo=settings["algo"],
+                    replay=settings["replay"],
+                    episodes=config.grid_episodes,
+                    seeds=config.grid_seeds,
+                    seed=config.seed,
+                    log_every=500 if config.quick else base.log_every,
+                ),
             )
-            runs.append(Run(scenario, algorithm, train_config, config.out / "runs" / scenario / algorithm))
+            runs.append(GridRun(scenario, algorithm, train_config, config.out / "runs" / scenario / algorithm))
     return runs
 
 
-def _rows(run: Run) -> list[dict[str, float]]:
+def _rows(run: GridRun) -> list[dict[str, float]]:
     """The metrics rows ``run``'s folder holds so far."""
     return read_metrics(run.folder / METRICS) if (run.folder / METRICS).exists() else []
 
 
-def status(run: Run) -> Literal["done", "partial", "new"]:
+def status(run: GridRun) -> Literal["done", "partial", "new"]:
     """Whether ``run``'s folder holds its finished run, an interrupted one, or nothing.
 
     A folder holding a run of other settings is an error (the user chooses: --force or
@@ -132,7 +133,9 @@ def status(run: Run) -> Literal["done", "partial", "new"]:
         return "new"
     saved = config_from_json((run.folder / CONFIG).read_text())
     if saved != run.config:
-        raise UserError(f"'{run.folder}' holds a run with other settings; rerun with --force to replace it, or choose another --out")
+        raise UserError(
+            f"'{run.folder}' holds a run with other settings; rerun with --force to replace it, or choose another --out"
+        )
     if not (run.folder / CHECKPOINT).exists():
         return "new"
     finished = sum(1 for r in _rows(run) if r["episodes"] == run.config.episodes) == run.config.seeds
@@ -145,19 +148,19 @@ def status(run: Run) -> Literal["done", "partial", "new"]:
 class Summary:
     """A rich table of the grid: runs done, running and left, and the estimated time left."""
 
-    def __init__(self, runs: list[Run], done: set[str]):
+    def __init__(self, runs: list[GridRun], done: set[str]):
         self.runs = runs
         self.done = set(done)
         self.running: dict[str, int] = {}
         self.started = time.perf_counter()
         self.trained = 0  # seed-episodes trained by this command (for the time estimate)
 
-    def progress(self, run: Run, episodes: int) -> None:
+    def progress(self, run: GridRun, episodes: int) -> None:
         previous = self.running.get(run.name, episodes)
         self.trained += max(episodes - previous, 0) * run.config.seeds
         self.running[run.name] = episodes
 
-    def finish(self, run: Run) -> None:
+    def finish(self, run: GridRun) -> None:
         self.running.pop(run.name, None)
         self.done.add(run.name)
 
@@ -166,7 +169,10 @@ class Summary:
         todo = sum((r.config.episodes - self.running.get(r.name, 0)) * r.config.seeds for r in left)
         elapsed = time.perf_counter() - self.started
         eta = f"{todo * elapsed / self.trained / 60:.0f} min" if self.trained else "-"
-        head = f"runs: {len(self.done)} done, {len(self.running)} running, {len(left) - len(self.running)} left; time left ~ {eta}"
+        head = (
+            f"runs: {len(self.done)} done, {len(self.running)} running, "
+            f"{len(left) - len(self.running)} left; time left ~ {eta}"
+        )
         table = Table(title=head, title_justify="left")
         for column in ("run", "state", "episodes"):
             table.add_column(column)
@@ -180,16 +186,18 @@ class Summary:
 # ----------------------------------------------------------------------------- backends
 
 
-def _episodes_done(run: Run) -> int:
+def _episodes_done(run: GridRun) -> int:
     return int(max((r["episodes"] for r in _rows(run)), default=0))
 
 
-def run_local(runs: list[Run], summary: Summary) -> None:
+def run_local(runs: list[GridRun], summary: Summary) -> None:
     """Train ``runs`` one after another in this process (resuming interrupted ones)."""
     for run in runs:
         resume = status(run) == "partial"
         summary.progress(run, _episodes_done(run) if resume else 0)
-        train(run.config, out=run.folder, resume=resume, progress=False, on_chunk=lambda e, r=run: summary.progress(r, e))
+        train(
+            run.config, out=run.folder, resume=resume, progress=False, on_chunk=lambda e, r=run: summary.progress(r, e)
+        )
         summary.finish(run)
 
 
@@ -204,7 +212,7 @@ def train_remote(config_json: str) -> dict[str, bytes]:
         return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
 
 
-def run_ray(runs: list[Run], summary: Summary, address: str | None, retries: int) -> None:
+def run_ray(runs: list[GridRun], summary: Summary, address: str | None, retries: int) -> None:
     """Send each run to a Ray cluster as one task (retried if its worker dies); write the
     returned files into the run's folder as each task completes.
 
@@ -238,7 +246,7 @@ def run_ray(runs: list[Run], summary: Summary, address: str | None, retries: int
         summary.finish(run)
 
 
-def run_grid(config: ReproduceConfig, base: TrainConfig = REFERENCE, live: bool = True) -> list[Run]:
+def run_grid(config: ReproduceConfig, base: TrainConfig = REFERENCE, live: bool = True) -> list[GridRun]:
     """Train every run of the grid that is not finished yet; returns all runs of the grid."""
     runs = plan(config, base)
     for run in runs:
@@ -251,7 +259,9 @@ def run_grid(config: ReproduceConfig, base: TrainConfig = REFERENCE, live: bool 
     todo = [run for run in runs if run.name not in done]
     summary = Summary(runs, done)
     execute: Callable[[], None] = (
-        (lambda: run_ray(todo, summary, config.address, config.retries)) if config.backend == "ray" else (lambda: run_local(todo, summary))
+        (lambda: run_ray(todo, summary, config.address, config.retries))
+        if config.backend == "ray"
+        else (lambda: run_local(todo, summary))
     )
     if live:
         with Live(summary, console=Console(), refresh_per_second=2):

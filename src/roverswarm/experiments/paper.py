@@ -31,8 +31,9 @@ import numpy as np
 from scipy import stats
 
 from roverswarm.env.scenarios import get_scenario
-from roverswarm.experiments.grid import ReproduceConfig, Run, run_grid
-from roverswarm.train import METRICS, REFERENCE, TrainConfig, config_to_json, read_metrics
+from roverswarm.experiments.grid import GridRun, ReproduceConfig, run_grid
+from roverswarm.config import REFERENCE, TrainConfig, config_to_json
+from roverswarm.runs import METRICS, read_metrics
 
 PAPER_TABLE1: dict[int, tuple[float, float]] = {2: (1.42, 2.26), 3: (3.08, 2.50), 4: (4.71, 2.69), 5: (8.78, 1.79)}
 """The paper's Table I: N -> (% change in episode reward, % change in training time)."""
@@ -44,7 +45,7 @@ LABELS = {"ddpg": "DDPG", "maddpg": "MADDPG", "maddpg-optimizer": "MADDPG + opti
 class RunResult:
     """What the report needs from one run's ``metrics.csv``."""
 
-    run: Run
+    run: GridRun
     rovers: int
     episodes: np.ndarray  # [T] episodes at each row
     curves: np.ndarray  # [S, T] mean episode reward per seed and row
@@ -56,7 +57,7 @@ class RunResult:
         return self.curves.max(axis=1)
 
 
-def load(run: Run) -> RunResult:
+def load(run: GridRun) -> RunResult:
     rows = read_metrics(run.folder / METRICS)
     seeds = sorted({int(r["seed"]) for r in rows})
     curves = np.array([[r["episode_reward"] for r in rows if int(r["seed"]) == s] for s in seeds])
@@ -98,8 +99,17 @@ def relative_change(treated: np.ndarray, control: np.ndarray) -> tuple[float, fl
 
 
 TABLE1_COLUMNS = [
-    "rovers", "reward_change_pct", "reward_ci_low", "reward_ci_high", "reward_p", "paper_reward_change_pct",
-    "time_change_pct", "time_ci_low", "time_ci_high", "time_p", "paper_time_change_pct",
+    "rovers",
+    "reward_change_pct",
+    "reward_ci_low",
+    "reward_ci_high",
+    "reward_p",
+    "paper_reward_change_pct",
+    "time_change_pct",
+    "time_ci_low",
+    "time_ci_high",
+    "time_p",
+    "paper_time_change_pct",
 ]
 
 
@@ -124,14 +134,17 @@ def _fmt(x: float, digits: int = 2, suffix: str = "") -> str:
 
 def table1_markdown(rows: list[dict[str, float]]) -> str:
     lines = [
-        "| N | episode reward change (ours) | 95% CI | p | paper | time per 1000 episodes change (ours) | 95% CI | p | paper |",
+        "| N | episode reward change (ours) | 95% CI | p | paper | time per 1000 episodes change "
+        "(ours) | 95% CI | p | paper |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
-            f"| {r['rovers']} | {_fmt(r['reward_change_pct'])}% | [{_fmt(r['reward_ci_low'])}, {_fmt(r['reward_ci_high'])}] "
+            f"| {r['rovers']} | {_fmt(r['reward_change_pct'])}% | [{_fmt(r['reward_ci_low'])}, "
+            f"{_fmt(r['reward_ci_high'])}] "
             f"| {r['reward_p']:.3g} | {_fmt(r['paper_reward_change_pct'], suffix='%')} | {_fmt(r['time_change_pct'])}% "
-            f"| [{_fmt(r['time_ci_low'])}, {_fmt(r['time_ci_high'])}] | {r['time_p']:.3g} | {_fmt(r['paper_time_change_pct'], suffix='%')} |"
+            f"| [{_fmt(r['time_ci_low'])}, {_fmt(r['time_ci_high'])}] | {r['time_p']:.3g} | "
+            f"{_fmt(r['paper_time_change_pct'], suffix='%')} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -153,9 +166,25 @@ def figure8(results: list[RunResult], path: Path) -> None:
     width = 0.8 / len(algorithms)
     for k, algorithm in enumerate(algorithms):
         for ax, value in zip(axes[0], (lambda r: r.best, lambda r: r.chunk_seconds)):
-            stats_ = [mean_interval(value(r)) for n in sizes for r in results if r.rovers == n and r.run.algorithm == algorithm]
-            xs = [i + (k - (len(algorithms) - 1) / 2) * width for i, n in enumerate(sizes) if any(r.rovers == n and r.run.algorithm == algorithm for r in results)]
-            ax.bar(xs, [m for m, _ in stats_], width, yerr=[np.nan_to_num(h) for _, h in stats_], capsize=3, label=LABELS[algorithm])
+            stats_ = [
+                mean_interval(value(r))
+                for n in sizes
+                for r in results
+                if r.rovers == n and r.run.algorithm == algorithm
+            ]
+            xs = [
+                i + (k - (len(algorithms) - 1) / 2) * width
+                for i, n in enumerate(sizes)
+                if any(r.rovers == n and r.run.algorithm == algorithm for r in results)
+            ]
+            ax.bar(
+                xs,
+                [m for m, _ in stats_],
+                width,
+                yerr=[np.nan_to_num(h) for _, h in stats_],
+                capsize=3,
+                label=LABELS[algorithm],
+            )
     for ax, title, ylabel in zip(
         axes[0],
         ("(a) maximum mean episode reward", "(b) time per 1000 episodes"),
@@ -202,14 +231,21 @@ def verdicts(results: list[RunResult], rows: list[dict[str, float]]) -> list[str
         significant = sum(1 for r in rows if r["reward_p"] < 0.05 and r["reward_change_pct"] > 0)
         grows = slope > 0 and changes[-1] > 0
         lines.append(
-            f"- *The optimizer helps more as N grows*: {'supported' if grows and significant else 'not supported'} by our runs. "
+            "- *The optimizer helps more as N grows*: "
+            f"{'supported' if grows and significant else 'not supported'} by our runs. "
             f"Its reward change goes {', '.join(f'{c:+.1f}%' for c in changes)} for N = {', '.join(map(str, sizes))} "
             f"(trend {slope:+.2f} points per rover); {significant} of {len(rows)} changes are positive with p < 0.05."
         )
     else:
-        lines.append("- *The optimizer helps more as N grows*: needs at least two swarm sizes with both MADDPG variants.")
+        lines.append(
+            "- *The optimizer helps more as N grows*: needs at least two swarm sizes with both MADDPG variants."
+        )
     by = {(r.rovers, r.run.algorithm): r for r in results}
-    pairs = [(n, by[(n, "maddpg")], by[(n, "ddpg")]) for n in sorted({r.rovers for r in results}) if (n, "maddpg") in by and (n, "ddpg") in by]
+    pairs = [
+        (n, by[(n, "maddpg")], by[(n, "ddpg")])
+        for n in sorted({r.rovers for r in results})
+        if (n, "maddpg") in by and (n, "ddpg") in by
+    ]
     if pairs:
         wins = [(n, m.best.mean() > d.best.mean(), relative_change(m.best, d.best)) for n, m, d in pairs]
         count = sum(w for _, w, _ in wins)
@@ -230,9 +266,14 @@ def _versions() -> str:
     return ", ".join([f"python {sys.version.split()[0]}", *found])
 
 
-def write_report(config: ReproduceConfig, results: list[RunResult], rows: list[dict[str, float]], elapsed: float) -> Path:
+def write_report(
+    config: ReproduceConfig, results: list[RunResult], rows: list[dict[str, float]], elapsed: float
+) -> Path:
     """``report.md``: settings, machine, versions, wall time, tables, figures and verdicts."""
-    per_run = ["| N | algorithm | max mean episode reward (mean, 95% CI) | s / 1000 episodes (mean, 95% CI) |", "|---|---|---|---|"]
+    per_run = [
+        "| N | algorithm | max mean episode reward (mean, 95% CI) | s / 1000 episodes (mean, 95% CI) |",
+        "|---|---|---|---|",
+    ]
     for r in sorted(results, key=lambda r: (r.rovers, list(LABELS).index(r.run.algorithm))):
         (m, h), (t, th) = mean_interval(r.best), mean_interval(r.chunk_seconds)
         per_run.append(f"| {r.rovers} | {LABELS[r.run.algorithm]} | {m:.2f} ± {h:.2f} | {t:.2f} ± {th:.2f} |")
@@ -241,8 +282,10 @@ def write_report(config: ReproduceConfig, results: list[RunResult], rows: list[d
     text = f"""# roverswarm reproduce: the paper's Table I and Figures 8-9
 
 ## Settings
-- Grid: scenarios {', '.join(config.scenarios)} x {', '.join(LABELS[a] for a in config.algorithms)}; {example.seeds} seeds per run (vmapped), {example.episodes} episodes per seed{' (--quick)' if config.quick else ''}.
-- One run's full training configuration (the grid sets scenario, algorithm, replay, episodes, seeds and seed; the rest is the same for every run):
+- Grid: scenarios {", ".join(config.scenarios)} x {", ".join(LABELS[a] for a in config.algorithms)}; \
+{example.seeds} seeds per run (vmapped), {example.episodes} episodes per seed{" (--quick)" if config.quick else ""}.
+- One run's full training configuration (the grid sets scenario, algorithm, replay, episodes, seeds and seed; \
+the rest is the same for every run):
 
 ```json
 {config_to_json(example)}
@@ -251,7 +294,9 @@ def write_report(config: ReproduceConfig, results: list[RunResult], rows: list[d
 ## Machine
 - {platform.platform()}, {os.cpu_count()} CPUs, {platform.processor() or platform.machine()}
 - {_versions()}
-- Wall time of this command: {elapsed / 60:.1f} min (runs finished by an earlier, interrupted command not counted); training time recorded in the runs' metrics (all runs, all chunks, whichever command ran them): {training / 60:.1f} min.
+- Wall time of this command: {elapsed / 60:.1f} min (runs finished by an earlier, interrupted command not \
+counted); training time recorded in the runs' metrics (all runs, all chunks, whichever command ran them): \
+{training / 60:.1f} min.
 
 ## Table I: MADDPG + experience sample optimizer vs MADDPG
 

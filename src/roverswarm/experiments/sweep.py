@@ -30,15 +30,16 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import tyro
 import yaml
 from rich.console import Console
 from rich.live import Live
 
-from roverswarm.algos.maddpg import AlgoConfig
 from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
-from roverswarm.experiments.grid import Run, Summary, run_local, status
-from roverswarm.train import METRICS, PRESETS, TrainConfig, read_metrics, validate, write_csv
+from roverswarm.experiments.grid import GridRun, Summary, run_local, status
+from roverswarm.config import PRESETS, validate, with_options
+from roverswarm.runs import METRICS, read_metrics, write_csv
 
 EVALUATION = "evaluation.csv"
 
@@ -47,44 +48,29 @@ EVALUATION = "evaluation.csv"
 class SweepConfig:
     """A sweep file and where its runs and table go."""
 
-    file: Path
-    """Sweep file (YAML): preset, scenarios, seeds, episodes and named settings (see the module docstring)."""
+    file: tyro.conf.Positional[Path]
+    """Sweep file (YAML): preset, scenarios, seeds, episodes and named settings (docs/training.md#sweeps)."""
     out: Path = Path("results/sweep")
     """Output folder: runs/, sweep.csv and sweep.md."""
     eval_episodes: int = 1000
     """Deterministic evaluation episodes per policy (the same layouts for every policy)."""
 
 
-def with_options(base: TrainConfig, options: dict[str, object], where: str = "options") -> TrainConfig:
-    """``base`` with ``options`` (field names of :class:`TrainConfig` or its learner's
-    :class:`AlgoConfig`) replaced; :class:`UserError` naming an unknown option."""
-    train_fields = {f.name for f in dataclasses.fields(TrainConfig)} - {"learner"}
-    learner_fields = {f.name for f in dataclasses.fields(AlgoConfig)}
-    top, learner = {}, {}
-    for name, value in options.items():
-        require(
-            name in train_fields or name in learner_fields,
-            f"{where}: unknown option '{name}'; known: {', '.join(sorted(train_fields | learner_fields))}",
-        )
-        if name == "hidden":
-            value = tuple(value)  # type: ignore[arg-type]
-        (top if name in train_fields else learner)[name] = value
-    try:
-        return dataclasses.replace(base, **top, learner=dataclasses.replace(base.learner, **learner))
-    except TypeError as error:
-        raise UserError(f"{where}: {error}") from error
-
-
-def load_sweep(path: Path, out: Path) -> list[Run]:
+def load_sweep(path: Path, out: Path) -> list[GridRun]:
     """The runs of sweep file ``path`` (checked: scenarios, options, presets), with folders under ``out``."""
     require(Path(path).is_file(), f"sweep file '{path}' does not exist")
     try:
         spec = yaml.safe_load(Path(path).read_text())
     except yaml.YAMLError as error:
         raise UserError(f"sweep file '{path}' is not valid YAML: {error}") from error
-    require(isinstance(spec, dict), f"sweep file '{path}' must hold a mapping (preset, scenarios, seeds, episodes, settings)")
+    require(
+        isinstance(spec, dict),
+        f"sweep file '{path}' must hold a mapping (preset, scenarios, seeds, episodes, settings)",
+    )
     known = {"preset", "scenarios", "seeds", "episodes", "settings"}
-    require(set(spec) <= known, f"sweep file '{path}': unknown keys {sorted(set(spec) - known)}; known: {sorted(known)}")
+    require(
+        set(spec) <= known, f"sweep file '{path}': unknown keys {sorted(set(spec) - known)}; known: {sorted(known)}"
+    )
     preset = spec.get("preset", "default")
     require(preset in PRESETS, f"sweep file '{path}': preset must be one of {', '.join(PRESETS)}, got '{preset}'")
     scenarios = spec.get("scenarios", ["paper-3"])
@@ -93,18 +79,23 @@ def load_sweep(path: Path, out: Path) -> list[Run]:
         require(name in SCENARIOS, f"sweep file '{path}': unknown scenario '{name}'; known: {', '.join(SCENARIOS)}")
     settings = spec.get("settings")
     require(isinstance(settings, dict) and settings, f"sweep file '{path}': settings must map names to options")
-    base = with_options(PRESETS[preset], {k: spec[k] for k in ("seeds", "episodes") if k in spec}, f"sweep file '{path}'")
+    base = with_options(
+        PRESETS[preset], {k: spec[k] for k in ("seeds", "episodes") if k in spec}, f"sweep file '{path}'"
+    )
     runs = []
     for scenario in scenarios:
         for name, options in settings.items():
-            require(isinstance(options, dict | None), f"sweep file '{path}': setting '{name}' must map option names to values")
+            require(
+                isinstance(options, dict | None),
+                f"sweep file '{path}': setting '{name}' must map option names to values",
+            )
             config = with_options(dataclasses.replace(base, scenario=scenario), options or {}, f"setting '{name}'")
             validate(config)
-            runs.append(Run(scenario, str(name), config, Path(out) / "runs" / scenario / str(name)))
+            runs.append(GridRun(scenario, str(name), config, Path(out) / "runs" / scenario / str(name)))
     return runs
 
 
-def evaluation(run: Run, episodes: int) -> list[dict[str, object]]:
+def evaluation(run: GridRun, episodes: int) -> list[dict[str, object]]:
     """The deterministic evaluation rows of ``run`` (random, oracle, every seed), computed once
     and kept in the run folder."""
     from roverswarm.evaluate import evaluate_run
@@ -120,7 +111,7 @@ def evaluation(run: Run, episodes: int) -> list[dict[str, object]]:
     return rows
 
 
-def table_row(run: Run, rows: list[dict[str, object]]) -> dict[str, object]:
+def table_row(run: GridRun, rows: list[dict[str, object]]) -> dict[str, object]:
     """One row of the sweep table: every seed's score and what the swarm did, beside the oracle."""
     by_name = {str(r["policy"]): r for r in rows}
     seeds = [r for name, r in by_name.items() if name not in ("random", "oracle")]

@@ -1,0 +1,231 @@
+"""Training configuration: :class:`TrainConfig`, the named presets, validation and JSON.
+
+A config is frozen, typed data (its field docstrings are the command line's ``--help``);
+presets are named configs, not code branches. :func:`validate` is the one place a run's
+settings are checked: the command line and :func:`roverswarm.train` call it alike.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from roverswarm.algos.learner import ALGOS, AlgoConfig
+from roverswarm.buffers.base import ReplayConfig
+from roverswarm.env.mars import EnvParams
+from roverswarm.env.missions import load_mission
+from roverswarm.env.scenarios import get_scenario
+from roverswarm.errors import UserError, require
+
+DEFAULT_SCENARIO = "paper-3"
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """A training run. Defaults are tuned to learn with continuous actions: four times as many
+    updates per environment step as the reference code, on batches a quarter the size (the
+    same compute), noise 0.2; :data:`REFERENCE` holds the reference values."""
+
+    scenario: str = DEFAULT_SCENARIO
+    """Scenario preset (see `roverswarm scenarios`)."""
+    mission: str | None = None
+    """Mission file (YAML/JSON) to train on instead of --scenario (give one of them): its
+    POIs and traps fixed, rover starts drawn anywhere in the map, fixed-length episodes.
+    Training stores its absolute path; the file is read again on resume and evaluation."""
+    learner: AlgoConfig = field(default_factory=AlgoConfig)
+    buffer: ReplayConfig = field(default_factory=ReplayConfig)
+    episodes: int = 60_000
+    """Training episodes per seed (a multiple of --log-every)."""
+    seeds: int = 1
+    """Independent seeds, trained together (vmapped) in one program."""
+    seed: int = 0
+    """Base random seed; seed s of the run uses a key derived from (seed, s)."""
+    num_envs: int = 20
+    """Parallel environments per seed. Does not change the updates per environment step."""
+    update_every: int = 25
+    """Environment steps (summed over parallel environments) per update of every agent."""
+    warmup: int = 1024 * 25
+    """Transitions stored before the first update."""
+    noise_std: float = 0.2
+    """Standard deviation of the Gaussian exploration noise added to actions (then clipped)."""
+    noise_final: float = 0.2
+    """Noise standard deviation after --noise-decay-episodes (linear decay from --noise-std)."""
+    noise_decay_episodes: int = 0
+    """Episodes over which the noise decays linearly to --noise-final; 0 keeps --noise-std."""
+    log_every: int = 1000
+    """Episodes per metrics row (and per jitted chunk)."""
+    checkpoint_every: int = 10
+    """Chunks (of --log-every episodes) between checkpoints; one is always written at the end."""
+
+    def env_name(self) -> str:
+        """What the run trains on: the scenario, or the mission file's name."""
+        return self.scenario if self.mission is None else f"mission {Path(self.mission).stem}"
+
+
+REFERENCE = TrainConfig(
+    learner=AlgoConfig(
+        actor_lr=1e-2, critic_lr=1e-2, gamma=0.95, tau=0.01, grad_clip=0.5, hidden=(64, 64), action_penalty=1e-3
+    ),
+    buffer=ReplayConfig(batch_size=1024, buffer_size=1_000_000, refresh_every=250),
+    update_every=100,
+    warmup=1024 * 25,
+    noise_std=0.1,
+    noise_final=0.1,
+    noise_decay_episodes=0,
+)
+"""The reference MADDPG code's hyper-parameters (openai/maddpg). The paper states only its
+networks (2 x 64); the rest are the reference code's, not the paper's."""
+
+SWARM = TrainConfig(
+    learner=AlgoConfig(
+        share_parameters=True, twin_critics=True, target_noise=0.2, actor_delay=2, layer_norm=True, normalize_obs=True
+    ),
+)
+"""Homogeneous rovers learning together: one shared actor and critic (with the rover's id),
+twin critics with target smoothing and delayed actor updates (MATD3), layer norm and running
+observation normalisation. Provisional: the sweep in ``docs/results/swarm/`` has not yet
+shown it meeting its targets (see that folder's README)."""
+
+PRESETS: dict[str, TrainConfig] = {"default": TrainConfig(), "reference": REFERENCE, "swarm": SWARM}
+"""Named starting points of `roverswarm train --preset`; other options change them."""
+
+
+def _positive(config, names: tuple[str, ...]) -> None:
+    for name in names:
+        value = getattr(config, name)
+        require(value >= 1, f"--{name.replace('_', '-')} must be >= 1, got {value}")
+
+
+def _finite(value: float, low: float, what: str, strict: bool = False) -> None:
+    ok = math.isfinite(value) and (value > low if strict else value >= low)
+    require(ok, f"--{what} must be a finite number {'>' if strict else '>='} {low}, got {value}")
+
+
+def validate(config: TrainConfig) -> EnvParams:
+    """Check ``config``; raise :class:`UserError` naming the bad field. Returns the env params."""
+    require(
+        config.mission is None or config.scenario == DEFAULT_SCENARIO,
+        f"--scenario {config.scenario} and --mission: the mission file sets the layout and the number "
+        "of rovers; give one of them",
+    )
+    params = get_scenario(config.scenario) if config.mission is None else load_mission(config.mission).training_params()
+    learner, replay = config.learner, config.buffer
+    require(learner.algo in ALGOS, f"--algo must be one of {', '.join(ALGOS)}, got '{learner.algo}'")
+    require(replay.replay in ("uniform", "ranked"), f"--replay must be 'uniform' or 'ranked', got '{replay.replay}'")
+    require(replay.alpha >= 0, f"--alpha must be >= 0, got {replay.alpha}")
+    require(0 <= replay.beta <= 1, f"--beta must be in [0, 1], got {replay.beta}")
+    _positive(config, ("episodes", "seeds", "num_envs", "update_every", "log_every", "checkpoint_every"))
+    _positive(replay, ("batch_size", "buffer_size", "refresh_every"))
+    require(config.warmup >= 0, f"--warmup must be >= 0, got {config.warmup}")
+    require(
+        replay.batch_size <= replay.buffer_size,
+        f"--batch-size ({replay.batch_size}) must not exceed --buffer-size ({replay.buffer_size})",
+    )
+    require(
+        config.log_every % config.num_envs == 0,
+        f"--log-every ({config.log_every}) must be a multiple of --num-envs ({config.num_envs})",
+    )
+    require(
+        config.episodes % config.log_every == 0,
+        f"--episodes ({config.episodes}) must be a multiple of --log-every ({config.log_every})",
+    )
+    steps = config.num_envs * params.max_steps
+    require(
+        steps % config.update_every == 0,
+        f"--num-envs x episode length ({steps}) must be a multiple of --update-every ({config.update_every})",
+    )
+    for name in ("actor_lr", "critic_lr", "tau", "grad_clip"):
+        value = getattr(learner, name)
+        require(value > 0, f"--{name.replace('_', '-')} must be positive, got {value}")
+    require(learner.ensemble >= 1, f"--ensemble must be >= 1 (sub-policies per agent), got {learner.ensemble}")
+    require(learner.infer_entropy >= 0, f"--infer-entropy must be >= 0, got {learner.infer_entropy}")
+    require(learner.infer_window >= 1, f"--infer-window must be >= 1 transition, got {learner.infer_window}")
+    require(
+        not learner.infer_policies or learner.algo == "maddpg",
+        "--infer-policies needs --algo maddpg: a DDPG critic never sees the other agents' actions",
+    )
+    require(
+        not learner.infer_policies or params.num_rovers >= 2,
+        "--infer-policies needs at least 2 rovers: there is no other agent to infer",
+    )
+    require(
+        not learner.share_parameters or (learner.ensemble == 1 and not learner.infer_policies),
+        "--share-parameters does not compose with --ensemble > 1 or --infer-policies (they need one network per agent)",
+    )
+    require(learner.actor_delay >= 1, f"--actor-delay must be >= 1, got {learner.actor_delay}")
+    _finite(learner.target_noise, 0, "target-noise")
+    _finite(learner.target_noise_clip, 0, "target-noise-clip")
+    _finite(learner.reward_scale, 0, "reward-scale", strict=True)
+    require(
+        replay.buffer_size >= steps,
+        f"--buffer-size ({replay.buffer_size}) must hold one iteration's transitions (--num-envs x "
+        f"episode length = {steps})",
+    )
+    require(0 <= learner.gamma <= 1, f"--gamma must be in [0, 1], got {learner.gamma}")
+    for name in ("noise_std", "noise_final", "noise_decay_episodes"):
+        value = getattr(config, name)
+        require(value >= 0, f"--{name.replace('_', '-')} must be >= 0, got {value}")
+    return params
+
+
+# ----------------------------------------------------------------------------- options and JSON
+
+
+def fields_by_name(config) -> dict[str, object]:
+    """Every leaf field of a (nested) config dataclass, by name (names are unique across the nesting)."""
+    flat: dict[str, object] = {}
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        flat.update(fields_by_name(value) if dataclasses.is_dataclass(value) else {f.name: value})
+    return flat
+
+
+_NESTED = {"learner": AlgoConfig, "buffer": ReplayConfig}
+
+
+def with_options(base: TrainConfig, options: dict[str, object], where: str = "options") -> TrainConfig:
+    """``base`` with ``options`` replaced, each named by its leaf field name (as on the command
+    line, with underscores); :class:`UserError` naming an unknown option."""
+    owner = {f.name: part for part, cls in _NESTED.items() for f in dataclasses.fields(cls)}
+    known = set(fields_by_name(base))
+    changes: dict[str, dict[str, object]] = {"": {}, **{part: {} for part in _NESTED}}
+    for name, value in options.items():
+        require(name in known, f"{where}: unknown option '{name}'; known: {', '.join(sorted(known))}")
+        changes[owner.get(name, "")][name] = tuple(value) if name == "hidden" else value  # type: ignore[arg-type]
+    try:
+        nested = {part: dataclasses.replace(getattr(base, part), **changes[part]) for part in _NESTED}
+        return dataclasses.replace(base, **changes[""], **nested)
+    except TypeError as error:
+        raise UserError(f"{where}: {error}") from error
+
+
+def resume_conflicts(given: TrainConfig, defaults: TrainConfig, saved: TrainConfig) -> None:
+    """Options ``given`` beside a resume (those that differ from ``defaults``) must match the
+    ``saved`` run's; :class:`UserError` naming the first that does not."""
+    values, unset, kept = (fields_by_name(c) for c in (given, defaults, saved))
+    for name, value in values.items():
+        if value != unset[name]:
+            require(value == kept[name], f"--resume: the run has {name}={kept[name]!r}, not {value!r}")
+
+
+def config_to_json(config: TrainConfig) -> str:
+    return json.dumps(dataclasses.asdict(config), indent=2)
+
+
+def config_from_json(text: str) -> TrainConfig:
+    """A config written by :func:`config_to_json`, also one from before the replay settings
+    moved into ``buffer`` (they were top-level fields then); :class:`UserError` if unreadable."""
+    try:
+        raw = json.loads(text)
+        learner = raw.pop("learner")
+        learner["hidden"] = tuple(learner["hidden"])
+        replay = raw.pop("buffer", {})
+        for f in dataclasses.fields(ReplayConfig):
+            if f.name in raw:
+                replay[f.name] = raw.pop(f.name)
+        return TrainConfig(**raw, learner=AlgoConfig(**learner), buffer=ReplayConfig(**replay))
+    except (ValueError, KeyError, TypeError, AttributeError) as error:
+        raise UserError(f"config.json is not a roverswarm training config ({type(error).__name__}: {error})") from error

@@ -1,0 +1,303 @@
+"""The run folder: what a training run writes and how it is read back.
+
+A run folder holds ``config.json`` (the :class:`~roverswarm.config.TrainConfig`),
+``metrics.csv`` (one row per seed per ``log_every`` episodes), ``checkpoint.npz`` (the
+trainer's state as plain arrays, never pickle), TensorBoard events in ``tb/`` and
+``learning_curve.png``. :class:`Run` opens a folder and gives its config, metrics, networks
+and policies, one way, for every command that reads a run.
+"""
+
+from __future__ import annotations
+
+import csv
+import functools
+import os
+from pathlib import Path
+from typing import Literal
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import serialization
+
+from roverswarm.algos.learner import LearnerState, init_learner
+from roverswarm.config import TrainConfig, config_from_json, validate
+from roverswarm.env.mars import EnvParams, observation_size
+from roverswarm.errors import UserError, require
+from roverswarm.policies import Policy, trained_policy
+
+CHECKPOINT = "checkpoint.npz"
+CONFIG = "config.json"
+METRICS = "metrics.csv"
+
+
+def _flatten(tree: dict, prefix: str = "") -> dict[str, np.ndarray]:
+    flat = {}
+    for key, value in tree.items():
+        path = f"{prefix}{key}"
+        if isinstance(value, dict):
+            flat.update(_flatten(value, path + "/"))
+        elif value is not None:
+            flat[path] = np.asarray(value)
+    return flat
+
+
+def _restore(template, flat: dict[str, np.ndarray], prefix: str = ""):
+    """``template`` (a pytree of flax structs) with every leaf replaced by ``flat[path]``."""
+
+    def fill(node, path):
+        if isinstance(node, dict):
+            return {k: fill(v, f"{path}{k}/") for k, v in node.items()}
+        if node is None:
+            return None
+        key = prefix + path[:-1]
+        if key not in flat:
+            raise UserError(f"checkpoint does not match this run: it has no '{key}'")
+        value = flat[key]
+        if value.shape != np.shape(node):
+            raise UserError(
+                f"checkpoint does not match this run: '{key}' has shape {value.shape}, expected {np.shape(node)}"
+            )
+        return jnp.asarray(value)
+
+    return serialization.from_state_dict(template, fill(serialization.to_state_dict(template), ""))
+
+
+def save_checkpoint(path: Path, runner, replay: bool = True) -> None:
+    """Write ``runner`` (the trainer's state: ``learner``, ``buffer`` and counters) to ``path``
+    atomically (temp file, then rename); plain arrays, no pickle.
+
+    Only the filled part of the replay is written; loading pads it back with zeros. With
+    ``replay=False`` (a finished run: nothing left to train) the replay is left out, which
+    makes the file hundreds of times smaller.
+    """
+    runner = jax.device_get(runner)
+    filled = int(np.max(runner.buffer.size))
+    runner = runner.replace(
+        buffer=runner.buffer.replace(data=jax.tree.map(lambda x: x[:, :filled], runner.buffer.data))
+    )
+    arrays = _flatten(serialization.to_state_dict(runner))
+    if not replay:
+        arrays = {k: v for k, v in arrays.items() if not k.startswith("buffer/")}
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: Path, template):
+    """Read a runner written by :func:`save_checkpoint` into the structure of ``template``."""
+    capacity = jax.tree.leaves(template.buffer.data)[0].shape[1]
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            flat = dict(data)
+    except (OSError, ValueError, EOFError) as error:
+        raise UserError(f"'{path}' cannot be read ({error}); it is truncated or not a roverswarm checkpoint") from error
+    if not any(k.startswith("buffer/") for k in flat):  # a finished run's checkpoint: no replay kept
+        flat.update(_flatten(serialization.to_state_dict(template.buffer), "buffer/"))
+    for key, x in flat.items():
+        if key.startswith("buffer/data/"):
+            flat[key] = np.concatenate(
+                [x, np.zeros((x.shape[0], capacity - x.shape[1], *x.shape[2:]), x.dtype)], axis=1
+            )
+    return _restore(template, flat)
+
+
+LEARNER_METRICS = ("critic_loss", "actor_loss", "q_mean", "sampled_loss", "sampled_loss_max", "sampled_newest")
+"""Per-update metrics in ``metrics.csv`` (mean over agents; ``*_max``: max over agents and updates)."""
+INFER_METRICS = ("infer_loss", "infer_error")
+"""With --infer-policies: the approximations' loss, and the mean absolute error of their means
+against the other agents' current actions on the sampled observations."""
+
+
+def learner_metrics(config: TrainConfig) -> tuple[str, ...]:
+    """The per-update metrics ``config``'s run logs."""
+    return LEARNER_METRICS + (INFER_METRICS if config.learner.infer_policies else ())
+
+
+def reduce_metric(name: str, x, axis):
+    """Aggregate a metric: ``*_max`` metrics by their maximum, the others by their mean."""
+    return x.max(axis=axis) if name.endswith("_max") else x.mean(axis=axis)
+
+
+def metric_rows(
+    config: TrainConfig, metrics: dict[str, np.ndarray], episodes: int, seconds: float
+) -> list[dict[str, float]]:
+    """One row per seed for a chunk. ``wall_seconds`` is the chunk's time for all seeds together."""
+    rows = []
+    for s in range(config.seeds):
+        row: dict[str, float] = {"seed": s, "episodes": episodes, "episode_reward": float(metrics["episode_reward"][s])}
+        for i, r in enumerate(metrics["agent_rewards"][s]):
+            row[f"agent_{i}_reward"] = float(r)
+        for k in ("collisions", "trap_contacts", "coverage_distance"):
+            row[k] = float(metrics[k][s])
+        for k in learner_metrics(config):
+            row[k] = float(reduce_metric(k, metrics[k][s], None))
+        row["wall_seconds"] = seconds
+        rows.append(row)
+    return rows
+
+
+def write_csv(path: Path, rows: list[dict]) -> None:
+    """``rows`` (dicts with the same keys) as a CSV file, written atomically (temp file + rename)."""
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    os.replace(tmp, path)
+
+
+COUNT_COLUMNS = ("seed", "episodes")
+"""Integer columns of ``metrics.csv``; kept integers when a resumed run rewrites the file."""
+
+
+def read_metrics(path: Path) -> list[dict[str, float]]:
+    """The rows of a ``metrics.csv``: ``seed`` and ``episodes`` as ints, the rest as floats."""
+    with open(path, newline="") as f:
+        return [
+            {k: int(float(v)) if k in COUNT_COLUMNS else float(v) for k, v in row.items()} for row in csv.DictReader(f)
+        ]
+
+
+def plot_learning_curve(rows: list[dict[str, float]], path: Path, title: str) -> None:
+    """Mean episode reward per 1000 episodes: one thin line per seed and their mean."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6, 4), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    seeds = sorted({int(r["seed"]) for r in rows})
+    curves = []
+    for s in seeds:
+        xs = [r["episodes"] for r in rows if int(r["seed"]) == s]
+        ys = [r["episode_reward"] for r in rows if int(r["seed"]) == s]
+        ax.plot(xs, ys, lw=0.8, alpha=0.5, label=f"seed {s}")
+        curves.append(ys)
+    length = min(len(c) for c in curves)
+    ax.plot(xs[:length], np.mean([c[:length] for c in curves], axis=0), color="black", lw=2, label="mean")
+    ax.set_xlabel("episodes")
+    ax.set_ylabel("mean episode reward")
+    ax.set_title(title)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
+
+
+SubPolicies = Literal["random", "each"]
+Partners = Literal["own", "other-seeds"]
+
+
+def partner_seeds(seed: int, num_agents: int, seeds: int) -> np.ndarray:
+    """[N] the seed each agent's actor comes from under ``other-seeds``: ``(seed + i) mod S``."""
+    return (seed + np.arange(num_agents)) % seeds
+
+
+def seed_actor(actor, seed: int, num_agents: int, partners: Partners = "own"):
+    """The actors [N * K, ...] that seed ``seed`` of a run's actors [S, N * K, ...] plays with:
+    its own (``own``), or agent i's from seed ``(seed + i) mod S`` (``other-seeds``: partners
+    trained apart, which never saw each other during training; :func:`partner_seeds`)."""
+    if partners == "own":
+        return jax.tree.map(lambda x: x[seed], actor)
+    seeds, rows = jax.tree.leaves(actor)[0].shape[:2]  # S, N * K
+    source = partner_seeds(seed, num_agents, seeds)[np.arange(rows) // (rows // num_agents)]
+    return jax.tree.map(lambda x: x[source, np.arange(rows)], actor)
+
+
+class Run:
+    """A finished or interrupted run in ``folder``: its config, metrics, networks and policies.
+
+    The networks are the last checkpoint's; :class:`UserError` if the folder holds no run."""
+
+    def __init__(self, folder: str | os.PathLike):
+        self.folder = Path(folder)
+        require(
+            (self.folder / CONFIG).exists() and (self.folder / CHECKPOINT).exists(),
+            f"'{self.folder}' holds no trained run (config.json and checkpoint.npz)",
+        )
+        self.config: TrainConfig = config_from_json((self.folder / CONFIG).read_text())
+        self.params: EnvParams = validate(self.config)
+
+    @classmethod
+    def of(cls, config: TrainConfig, learner: LearnerState, folder: str | os.PathLike = "(in memory)") -> Run:
+        """A run held in memory (e.g. a :class:`~roverswarm.trainer.Result`'s config and networks)."""
+        run = cls.__new__(cls)
+        run.folder, run.config, run.params = Path(folder), config, validate(config)
+        run.__dict__["learner"] = learner
+        return run
+
+    def metrics(self) -> list[dict[str, float]]:
+        """The rows of ``metrics.csv`` (none if it was never written)."""
+        return read_metrics(self.folder / METRICS) if (self.folder / METRICS).exists() else []
+
+    @functools.cached_property
+    def learner(self) -> LearnerState:
+        """Every seed's networks [S, ...] from the checkpoint (read once)."""
+        config = self.config
+        keys = jax.random.split(jax.random.PRNGKey(0), config.seeds)
+        template = jax.vmap(
+            lambda k: init_learner(k, config.learner, self.params.num_rovers, observation_size(self.params))
+        )(keys)
+        try:
+            with np.load(self.folder / CHECKPOINT, allow_pickle=False) as data:
+                flat = {k: data[k] for k in data.files if k.startswith("learner/")}
+        except (OSError, ValueError, EOFError) as error:
+            raise UserError(
+                f"'{self.folder / CHECKPOINT}' cannot be read ({error}); it is truncated or not a roverswarm checkpoint"
+            ) from error
+        return _restore(template, flat, prefix="learner/")
+
+    def policy(self, seed: int = 0) -> Policy:
+        """Seed ``seed``'s deterministic policy (with ensembles, a sub-policy per agent and episode)."""
+        require(
+            0 <= seed < self.config.seeds,
+            f"--policy-seed must be in [0, {self.config.seeds}) for '{self.folder}', got {seed}",
+        )
+        ensemble = ", random sub-policies" if self.config.learner.ensemble > 1 else ""
+        name = f"{self.config.learner.algo} ({self.folder.name}, seed {seed}{ensemble})"
+        return self._policy(seed, jax.tree.map(lambda x: x[seed], self.learner.actor), name, seed=seed)
+
+    def _policy(self, index: int, actor, name: str, sub_policy: int | None = None, **kwargs) -> Policy:
+        """Seed ``index``'s policy of ``actor`` (on that seed's observation normaliser)."""
+        norm = self.learner.obs_norm
+        norm = None if norm is None else jax.tree.map(lambda x: x[index], norm)
+        return trained_policy(self.config.learner, actor, name, sub_policy, obs_norm=norm, **kwargs)
+
+    def policies(self, sub_policies: SubPolicies = "random", seed: int = 0, partners: Partners = "own") -> list[Policy]:
+        """Every seed's trained policy; with ensembles, a random sub-policy per agent and episode
+        as in training (``random``), or every sub-policy k of all agents in turn (``each``).
+        With ``partners="other-seeds"`` every agent plays beside the other agents of other seeds
+        (:func:`seed_actor`), a test of how well a policy copes with partners it was not trained with."""
+        config = self.config
+        require(sub_policies in ("random", "each"), f"--sub-policies must be 'random' or 'each', got '{sub_policies}'")
+        require(partners in ("own", "other-seeds"), f"--partners must be 'own' or 'other-seeds', got '{partners}'")
+        require(
+            partners == "own" or config.seeds >= 2,
+            f"--partners other-seeds needs a run trained with --seeds >= 2, this one has {config.seeds}",
+        )
+        require(
+            partners == "own" or not (config.learner.share_parameters or config.learner.normalize_obs),
+            "--partners other-seeds needs one network and no observation normaliser per agent: this "
+            "run has --share-parameters or --normalize-obs",
+        )
+        num_agents = self.params.num_rovers
+        policies = []
+        for s in range(config.seeds):
+            actor = seed_actor(self.learner.actor, s, num_agents, partners)
+            if partners == "own":
+                name = f"{config.learner.algo} seed {s}"
+            else:
+                partners_of = "/".join(map(str, partner_seeds(s, num_agents, config.seeds)))
+                name = f"{config.learner.algo} agents of seeds {partners_of}"
+            if config.learner.ensemble == 1:
+                policies.append(self._policy(s, actor, name))
+            elif sub_policies == "random":
+                policies.append(self._policy(s, actor, f"{name}, random sub-policies", seed=seed))
+            else:
+                policies += [
+                    self._policy(s, actor, f"{name}, sub-policy {k}", k) for k in range(config.learner.ensemble)
+                ]
+        return policies

@@ -1,0 +1,79 @@
+"""Sweeps: a settings file trains every setting (seeds vmapped), evaluates every seed and writes one table."""
+
+from __future__ import annotations
+
+import csv
+
+import pytest
+import yaml
+
+from roverswarm.cli import main
+from roverswarm.config import with_options
+from roverswarm.errors import UserError
+from roverswarm.evaluate import evaluate_run
+from roverswarm.experiments.sweep import SweepConfig, load_sweep, sweep
+
+TINY = dict(num_envs=4, batch_size=64, buffer_size=4000, warmup=500, log_every=100, checkpoint_every=1, hidden=[32, 32])
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    """A sweep of two settings on paper-2 (the first is the shared tiny config), trained and evaluated."""
+    folder = tmp_path_factory.mktemp("sweep")
+    spec = {
+        "preset": "default",
+        "scenarios": ["paper-2"],
+        "seeds": 2,
+        "episodes": 400,
+        "settings": {"plain": dict(TINY), "shared-td3": {**TINY, "share_parameters": True, "twin_critics": True}},
+    }
+    (folder / "sweep.yaml").write_text(yaml.safe_dump(spec))
+    config = SweepConfig(folder / "sweep.yaml", folder / "out", eval_episodes=50)
+    return config, sweep(config, live=False)
+
+
+def test_a_sweep_writes_one_row_per_run_with_every_seed(finished, tiny_config):
+    config, table = finished
+    with open(config.out / "sweep.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["scenario"], r["setting"]) for r in rows] == [("paper-2", "plain"), ("paper-2", "shared-td3")]
+    runs = load_sweep(config.file, config.out)
+    assert runs[0].config == with_options(tiny_config, {"episodes": 400, "seeds": 2, "scenario": "paper-2"})
+    assert runs[1].config.learner.share_parameters and runs[1].config.learner.twin_critics
+    for row, run in zip(rows, runs):  # the scores are the deterministic evaluation's, seed by seed
+        evaluated = evaluate_run(run.folder, episodes=50)
+        scores = [f"{r['normalized_score']:.2f}" for r in evaluated[2:]]
+        assert row["scores"] == " / ".join(scores) and len(scores) == 2
+        assert float(row["min_score"]) == pytest.approx(min(r["normalized_score"] for r in evaluated[2:]))
+        assert float(row["oracle_trap_contacts"]) == pytest.approx(evaluated[1]["trap_contacts"])
+        assert float(row["train_minutes"]) > 0
+    assert "shared-td3" in table.read_text()
+
+
+def test_a_rerun_keeps_finished_runs(finished, monkeypatch):
+    import roverswarm.experiments.grid as grid_module
+
+    config, _ = finished
+    monkeypatch.setattr(grid_module, "train", lambda *a, **k: pytest.fail("a finished run was trained again"))
+    sweep(config, live=False)
+
+
+@pytest.mark.parametrize(
+    "spec, message",
+    [
+        ({"settings": {"a": {"learning_rate": 1}}}, "setting 'a': unknown option 'learning_rate'"),
+        ({"scenarios": ["mars-1"], "settings": {"a": {}}}, "unknown scenario 'mars-1'"),
+        ({"preset": "fast", "settings": {"a": {}}}, "preset must be one of default, reference, swarm"),
+        ({"settings": {"a": {"share_parameters": True, "ensemble": 2}}}, "--share-parameters does not compose"),
+        ({"settings": {}}, "settings must map names to options"),
+        ({"runs": 3, "settings": {"a": {}}}, "unknown keys ['runs']"),
+    ],
+)
+def test_bad_sweep_files_are_one_line_and_exit_2(spec, message, tmp_path, capsys):
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    with pytest.raises(UserError, match=message.replace("[", r"\[").replace("]", r"\]")):
+        load_sweep(path, tmp_path / "out")
+    assert main(["sweep", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1
