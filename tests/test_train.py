@@ -291,3 +291,36 @@ def test_run_folders_written_before_the_replay_config_moved_still_load(unbroken,
     assert [r["policy"] for r in evaluate_run(old, episodes=20)][2:] == ["maddpg seed 0", "maddpg seed 1"]
     assert main(["train", "--resume", str(old)]) == 0
     assert TIMELESS(read_metrics(old / "metrics.csv")) == TIMELESS(unbroken.metrics)
+
+
+def test_sigterm_saves_a_checkpoint_like_ctrl_c(tiny_config, tmp_path, monkeypatch):
+    """Schedulers and Ray stop work with SIGTERM: the run checkpoints and stops as on Ctrl-C."""
+    import roverswarm.trainer as train_module
+
+    real = train_module.run_chunk
+    calls = []
+
+    def terminated(*args):
+        calls.append(1)
+        if len(calls) == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return real(*args)
+
+    monkeypatch.setattr(train_module, "run_chunk", terminated)
+    with pytest.raises(RunStopped, match="interrupted at episode 200; checkpoint saved"):
+        train(tiny_config, out=tmp_path, progress=False)
+    with np.load(tmp_path / CHECKPOINT) as data:
+        assert int(data["episodes"]) == 200
+
+
+def test_a_truncated_checkpoint_is_one_line_and_exit_2(unbroken, tmp_path, capsys):
+    import shutil
+
+    broken = tmp_path / "broken"
+    shutil.copytree(unbroken.out, broken)
+    data = (broken / CHECKPOINT).read_bytes()
+    (broken / CHECKPOINT).write_bytes(data[: len(data) // 2])
+    for argv in (["evaluate", str(broken), "--episodes", "5"], ["train", "--resume", str(broken)]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "cannot be read" in err and "truncated" in err and err.count("\n") == 1, err

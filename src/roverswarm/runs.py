@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 import functools
 import os
+import zipfile
 from pathlib import Path
 from typing import Literal
 
@@ -93,7 +94,7 @@ def load_checkpoint(path: Path, template):
     try:
         with np.load(path, allow_pickle=False) as data:
             flat = dict(data)
-    except (OSError, ValueError, EOFError) as error:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
         raise UserError(f"'{path}' cannot be read ({error}); it is truncated or not a roverswarm checkpoint") from error
     if not any(k.startswith("buffer/") for k in flat):  # a finished run's checkpoint: no replay kept
         flat.update(_flatten(serialization.to_state_dict(template.buffer), "buffer/"))
@@ -244,7 +245,7 @@ class Run:
         try:
             with np.load(self.folder / CHECKPOINT, allow_pickle=False) as data:
                 flat = {k: data[k] for k in data.files if k.startswith("learner/")}
-        except (OSError, ValueError, EOFError) as error:
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
             raise UserError(
                 f"'{self.folder / CHECKPOINT}' cannot be read ({error}); it is truncated or not a roverswarm checkpoint"
             ) from error

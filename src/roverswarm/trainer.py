@@ -312,8 +312,8 @@ def train(
                 checkpoint.exists() and (out / CONFIG).exists(),
                 f"--resume: no run to continue in '{out}' (config.json and checkpoint.npz)",
             )
-            saved = config_from_json((out / CONFIG).read_text())
-            differ = [name for name, value in fields_by_name(config).items() if fields_by_name(saved)[name] != value]
+            saved = fields_by_name(config_from_json((out / CONFIG).read_text()))
+            differ = [name for name, value in fields_by_name(config).items() if saved[name] != value]
             require(
                 not differ,
                 f"--resume: the run in '{out}' has other settings ({', '.join(differ)}); resume it with its own config",
