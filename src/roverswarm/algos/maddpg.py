@@ -212,7 +212,10 @@ def _agent_update(
     critic, critic_opt_state = _apply(critic_opt, c_grads, state.critic_opt, state.critic)
 
     active = (weights.max(axis=-1) > 0).astype(jnp.float32)  # [K]: sub-policies with a batch
-    scaled = lambda params, obs, actions, on: on * _actor_loss(config, params, critic, agent, obs, actions)  # noqa: E731
+
+    def scaled(params, obs, actions, on):  # a sub-policy without a batch (on = 0) gets no gradient
+        return on * _actor_loss(config, params, critic, agent, obs, actions)
+
     a_loss, a_grads = jax.vmap(jax.value_and_grad(scaled))(state.actor, batch.obs, batch.actions, active)
     actor, actor_opt_state = jax.vmap(lambda g, o, p: _apply(actor_opt, g, o, p))(a_grads, state.actor_opt, state.actor)
 
