@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import signal
+
 import pytest
 
 from roverswarm.jaxcache import enable_compilation_cache
@@ -34,3 +37,27 @@ def tiny_config():
         log_every=100,
         checkpoint_every=1,
     )
+
+
+@pytest.fixture
+def signal_at_chunk(monkeypatch):
+    """``arm(signum, chunk)`` makes the next training send ``signum`` to this process just
+    before its chunk number ``chunk`` (as Ctrl-C or a scheduler would); it returns a function
+    that restores the trainer."""
+    import roverswarm.trainer as trainer
+
+    real = trainer.run_chunk
+
+    def arm(signum: int = signal.SIGINT, chunk: int = 2):
+        calls = []
+
+        def signalled(*args):
+            calls.append(1)
+            if len(calls) == chunk:
+                os.kill(os.getpid(), signum)
+            return real(*args)
+
+        monkeypatch.setattr(trainer, "run_chunk", signalled)
+        return lambda: monkeypatch.setattr(trainer, "run_chunk", real)
+
+    return arm

@@ -6,7 +6,6 @@ training, resume and evaluation with both options; bad input."""
 from __future__ import annotations
 
 import dataclasses
-import os
 import signal
 
 import jax
@@ -208,23 +207,12 @@ def test_the_inferred_policies_learn_the_other_agents(tiny_config):
         assert rows[-1]["infer_loss"] < 0.5 * rows[0]["infer_loss"], [r["infer_loss"] for r in rows]
 
 
-def test_ensemble_run_resumes_to_the_same_numbers(ensemble_run, tmp_path, monkeypatch):
+def test_ensemble_run_resumes_to_the_same_numbers(ensemble_run, tmp_path, signal_at_chunk):
     """Ctrl-C mid-run (partitions, sub-policies, approximations and ranks checkpointed), resume."""
-    import roverswarm.trainer as train_module
-
-    real = train_module.run_chunk
-    calls = []
-
-    def interrupted(*args):
-        calls.append(1)
-        if len(calls) == 2:
-            os.kill(os.getpid(), signal.SIGINT)
-        return real(*args)
-
-    monkeypatch.setattr(train_module, "run_chunk", interrupted)
+    disarm = signal_at_chunk(signal.SIGINT)
     with pytest.raises(RunStopped, match="interrupted at episode 200"):
         train(ensemble_run.config, out=tmp_path, progress=False)
-    monkeypatch.setattr(train_module, "run_chunk", real)
+    disarm()
     resumed = train(ensemble_run.config, out=tmp_path, resume=True, progress=False)
     strip = lambda rows: [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rows]  # noqa: E731
     assert strip(resumed.metrics) == strip(ensemble_run.metrics)

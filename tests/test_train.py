@@ -170,26 +170,15 @@ def test_non_finite_losses_stop_the_run_and_keep_the_last_good_checkpoint(tiny_c
     assert len(read_metrics(out / "metrics.csv")) == 2 * tiny_config.seeds
 
 
-def test_ranked_replay_is_deterministic_and_resumes_exactly(tiny_config, tmp_path, monkeypatch):
+def test_ranked_replay_is_deterministic_and_resumes_exactly(tiny_config, tmp_path, signal_at_chunk):
     """Same seed => same numbers with the experience sample optimizer, also across a Ctrl-C
     (checkpoint of losses and sampling table) and a resume."""
-    import roverswarm.trainer as train_module
-
     config = with_options(tiny_config, dict(replay="ranked", refresh_every=10, importance_weights=True))
     reference = train(config, progress=False)
-    real = train_module.run_chunk
-    calls = []
-
-    def interrupted(*args):
-        calls.append(1)
-        if len(calls) == 2:
-            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C mid-run: the trainer checkpoints and stops
-        return real(*args)
-
-    monkeypatch.setattr(train_module, "run_chunk", interrupted)
+    disarm = signal_at_chunk(signal.SIGINT)  # Ctrl-C mid-run: the trainer checkpoints and stops
     with pytest.raises(RunStopped, match="interrupted at episode 200"):
         train(config, out=tmp_path, progress=False)
-    monkeypatch.setattr(train_module, "run_chunk", real)
+    disarm()
     resumed = train(config, out=tmp_path, resume=True, progress=False)
     assert TIMELESS(resumed.metrics) == TIMELESS(reference.metrics)
     newest = [r["sampled_newest"] for r in reference.metrics if r["critic_loss"] > 0]
@@ -293,20 +282,9 @@ def test_run_folders_written_before_the_replay_config_moved_still_load(unbroken,
     assert TIMELESS(read_metrics(old / "metrics.csv")) == TIMELESS(unbroken.metrics)
 
 
-def test_sigterm_saves_a_checkpoint_like_ctrl_c(tiny_config, tmp_path, monkeypatch):
+def test_sigterm_saves_a_checkpoint_like_ctrl_c(tiny_config, tmp_path, signal_at_chunk):
     """Schedulers and Ray stop work with SIGTERM: the run checkpoints and stops as on Ctrl-C."""
-    import roverswarm.trainer as train_module
-
-    real = train_module.run_chunk
-    calls = []
-
-    def terminated(*args):
-        calls.append(1)
-        if len(calls) == 2:
-            os.kill(os.getpid(), signal.SIGTERM)
-        return real(*args)
-
-    monkeypatch.setattr(train_module, "run_chunk", terminated)
+    signal_at_chunk(signal.SIGTERM)
     with pytest.raises(RunStopped, match="interrupted at episode 200; checkpoint saved"):
         train(tiny_config, out=tmp_path, progress=False)
     with np.load(tmp_path / CHECKPOINT) as data:
