@@ -38,7 +38,7 @@ class TrainCommand:
 
     preset: Literal["default", "reference", "swarm"] = "default"
     """Starting values of every option: `default` (tuned to learn), `reference` (the reference
-    MADDPG code's), or `swarm` (shared networks, MATD3, normalisation: learns large swarms).
+    MADDPG code's), or `swarm` (shared networks with rover ids and MATD3; provisional, see docs/results/swarm).
     Options given beside it change them."""
     config: TrainConfig = field(default_factory=TrainConfig)
     out: Path | None = None

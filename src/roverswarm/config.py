@@ -80,14 +80,13 @@ REFERENCE = TrainConfig(
 networks (2 x 64); the rest are the reference code's, not the paper's."""
 
 SWARM = TrainConfig(
-    learner=AlgoConfig(
-        share_parameters=True, twin_critics=True, target_noise=0.2, actor_delay=2, layer_norm=True, normalize_obs=True
-    ),
+    learner=AlgoConfig(share_parameters=True, twin_critics=True, target_noise=0.2, actor_delay=2),
 )
 """Homogeneous rovers learning together: one shared actor and critic (with the rover's id),
-twin critics with target smoothing and delayed actor updates (MATD3), layer norm and running
-observation normalisation. Provisional: the sweep in ``docs/results/swarm/`` has not yet
-shown it meeting its targets (see that folder's README)."""
+twin critics with target smoothing and delayed actor updates (MATD3): the best setting of
+the first paper-5 sweep (``docs/results/swarm/``; layer norm and observation normalisation
+made it worse there). Provisional: it does not yet meet its targets (0.10 / 0.16 on paper-5
+after 20,000 episodes)."""
 
 PRESETS: dict[str, TrainConfig] = {"default": TrainConfig(), "reference": REFERENCE, "swarm": SWARM}
 """Named starting points of `roverswarm train --preset`; other options change them."""
