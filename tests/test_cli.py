@@ -44,7 +44,8 @@ def test_render_writes_an_animation_and_its_last_frame(tmp_path):
                 "--scenario",
                 "paper-2",
             ],
-            "--scenario paper-2 and --mission: the mission file sets the layout and the number of rovers; give one of them",
+            "--scenario paper-2 and --mission: the mission file sets the layout and the number of rovers; "
+            "give one of them",
         ),
     ],
 )

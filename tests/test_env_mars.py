@@ -194,6 +194,31 @@ def test_same_key_same_episode_different_key_different_episode(paper3):
     assert not np.allclose(a.rover_pos, c.rover_pos)
 
 
+def test_nearest_first_view_matches_a_python_sort_and_ignores_the_numbering():
+    params = get_scenario("paper-5").replace(nearest_first=True)
+    _, states = jax.vmap(reset, in_axes=(0, None))(jax.random.split(jax.random.PRNGKey(5), 20), params)
+    obs = np.asarray(jax.vmap(observe, in_axes=(0, None))(states, params))
+    for e in range(20):
+        rovers, pois, traps = (
+            np.asarray(x[e], np.float64) for x in (states.rover_pos, states.poi_pos, states.trap_pos)
+        )
+        for i, me in enumerate(rovers):
+            expected = [*states.rover_vel[e, i], *me]
+            for group in (pois, traps, np.delete(rovers, i, axis=0)):
+                expected += [c for point in sorted(group - me, key=lambda d: d @ d) for c in point]
+            np.testing.assert_allclose(obs[e, i], expected, atol=1e-6)
+    # renumbering the POIs, traps and rovers only renumbers the rows
+    one = jax.tree.map(lambda x: x[0], states)
+    shuffled = one.replace(
+        rover_pos=one.rover_pos[::-1],
+        rover_vel=one.rover_vel[::-1],
+        poi_pos=one.poi_pos[::-1],
+        trap_pos=one.trap_pos[::-1],
+    )
+    np.testing.assert_allclose(observe(shuffled, params), obs[0][::-1], atol=1e-6)
+    assert not np.allclose(observe(one, params.replace(nearest_first=False)), obs[0])
+
+
 # ----------------------------------------------------------------------------- bad input
 
 

@@ -48,7 +48,8 @@ def with_change(change) -> dict:
         (lambda d: d["rovers"]["start"].__setitem__(1, [0.1, 0.0]), "rovers.start[1] overlaps traps[0]"),
         (
             lambda d: d["pois"][0].update(position=[0.05, 0.15]),
-            "pois[0] 'a' cannot be observed without touching traps[0]: a rover (radius 0.15) within 0.1 of it would be in the crater; "
+            "pois[0] 'a' cannot be observed without touching traps[0]: a rover (radius 0.15) within 0.1 of it "
+            "would be in the crater; "
             "move it more than 0.2 from the trap's centre",
         ),
         (lambda d: d["rovers"]["start"].__setitem__(1, [-0.4, -0.8]), "rovers.start[1] overlaps rovers.start[0]"),
@@ -353,7 +354,8 @@ def test_train_on_a_mission_then_run_the_policy_and_refuse_a_mismatch(tiny_confi
     np.testing.assert_allclose(data.poi_pos[0], mission.params.fixed_pois)
     with pytest.raises(
         UserError,
-        match=r"trained for 3 rovers, 3 POIs, 3 traps \(mission mission\); mission 'crater-survey' has 3 rovers, 6 POIs, 2 traps",
+        match=r"trained for 3 rovers, 3 POIs, 3 traps \(mission mission\); "
+        r"mission 'crater-survey' has 3 rovers, 6 POIs, 2 traps",
     ):
         load_policy(str(tmp_path / "run"), load_mission(EXAMPLES / "survey.yaml"))
     with pytest.raises(UserError, match=r"--policy-seed must be in \[0, 1\)"):

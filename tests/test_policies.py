@@ -8,9 +8,11 @@ import jax
 import numpy as np
 import pytest
 
+from roverswarm.algos.learner import AlgoConfig, init_learner
 from roverswarm.env import get_scenario
+from roverswarm.env.mars import observation_size
 from roverswarm.rollout import rollout
-from roverswarm.policies import ORACLE, RANDOM, assign_pois
+from roverswarm.policies import ORACLE, RANDOM, assign_pois, trained_policy
 
 
 def test_hungarian_assignment_matches_brute_force():
@@ -61,3 +63,15 @@ def test_episode_reward_is_the_sum_of_per_rover_step_rewards():
     np.testing.assert_allclose(result.stats.reward, result.rewards.sum(axis=(1, 2)), rtol=1e-6)
     np.testing.assert_allclose(result.stats.agent_rewards.sum(axis=1), result.stats.reward, rtol=1e-5)
     assert result.rover_pos.shape == (8, params.max_steps + 1, 3, 2)
+
+
+def test_a_trained_policy_sees_the_view_it_was_trained_on_whatever_the_environment_shows():
+    params = get_scenario("paper-3")
+    config = AlgoConfig(share_parameters=True, hidden=(16,))
+    learner = init_learner(jax.random.PRNGKey(0), config, params.num_rovers, observation_size(params))
+    key = jax.random.PRNGKey(1)
+    nearest = trained_policy(config, learner.actor, nearest_first=True)
+    shown = {view: rollout(nearest, key, params.replace(nearest_first=view), 8).rewards for view in (True, False)}
+    np.testing.assert_allclose(shown[True], shown[False], rtol=1e-5)  # other programs: rounding only
+    indexed = rollout(trained_policy(config, learner.actor), key, params, 8).rewards
+    assert not np.allclose(indexed, shown[True])

@@ -35,6 +35,9 @@ class TrainConfig:
     """Mission file (YAML/JSON) to train on instead of --scenario (give one of them): its
     POIs and traps fixed, rover starts drawn anywhere in the map, fixed-length episodes.
     Training stores its absolute path; the file is read again on resume and evaluation."""
+    nearest_first: bool = False
+    """Each rover observes the POIs, traps and other rovers nearest first instead of in index
+    order: the same view for every numbering of a layout."""
     learner: AlgoConfig = field(default_factory=AlgoConfig)
     buffer: ReplayConfig = field(default_factory=ReplayConfig)
     episodes: int = 60_000
@@ -111,6 +114,7 @@ def validate(config: TrainConfig) -> EnvParams:
         "of rovers; give one of them",
     )
     params = get_scenario(config.scenario) if config.mission is None else load_mission(config.mission).training_params()
+    params = params.replace(nearest_first=config.nearest_first)
     learner, replay = config.learner, config.buffer
     require(learner.algo in ALGOS, f"--algo must be one of {', '.join(ALGOS)}, got '{learner.algo}'")
     require(replay.replay in ("uniform", "ranked"), f"--replay must be 'uniform' or 'ranked', got '{replay.replay}'")

@@ -33,7 +33,7 @@ from scipy.optimize import linear_sum_assignment
 
 from roverswarm.algos.learner import AlgoConfig, act
 from roverswarm.algos.normalize import ObsNorm
-from roverswarm.env.mars import ACTION_SIZE, EnvParams, EnvState, other_rovers, trap_radii
+from roverswarm.env.mars import ACTION_SIZE, EnvParams, EnvState, observe, other_rovers, trap_radii
 
 Plan = Any
 ActFn = Callable[[jax.Array, jax.Array, EnvState, Plan, Any, EnvParams], jax.Array]
@@ -205,20 +205,13 @@ REFERENCE_POLICIES: dict[str, Policy] = {p.name: p for p in (RANDOM, ORACLE)}
 
 
 @functools.lru_cache(maxsize=None)
-def _deterministic_act(config: AlgoConfig) -> ActFn:
+def _trained_act(config: AlgoConfig, nearest_first: bool) -> ActFn:
     # one function object per learner config, so rollouts of new weights reuse the compiled code
     def act_fn(key, obs, state, plan, weights, params):
+        if params.nearest_first != nearest_first:  # an environment showing another view than training's
+            obs = observe(state, params.replace(nearest_first=nearest_first))
         actor, obs_norm = weights
-        return act(config, actor, obs, obs_norm=obs_norm)
-
-    return act_fn
-
-
-@functools.lru_cache(maxsize=None)
-def _ensemble_act(config: AlgoConfig) -> ActFn:
-    def act_fn(key, obs, state, plan, weights, params):
-        actor, obs_norm = weights
-        return act(config, actor, obs, plan, obs_norm)  # plan: this episode's sub-policy of every agent [N]
+        return act(config, actor, obs, plan, obs_norm)  # plan: with ensembles, every agent's sub-policy [N]
 
     return act_fn
 
@@ -243,12 +236,15 @@ def trained_policy(
     sub_policy: int | None = None,
     seed: int = 0,
     obs_norm: ObsNorm | None = None,
+    nearest_first: bool = False,
 ) -> Policy:
     """The deterministic policy (no exploration noise) of trained actors [N * K, ...] (or [1, ...]
-    shared), on observations standardised by ``obs_norm`` (runs with --normalize-obs). With
+    shared), on observations standardised by ``obs_norm`` (runs with --normalize-obs) and in
+    the view it was trained on (``nearest_first``, whatever view the environment shows). With
     ensembles (K > 1) every agent runs sub-policy ``sub_policy``, or, if None, one drawn per
     episode as in training (by a generator seeded with ``seed``)."""
     weights = (actor_params, obs_norm)
+    act_fn = _trained_act(config, nearest_first)
     if config.ensemble == 1:
-        return Policy(name, _deterministic_act(config), weights=weights)
-    return Policy(name, _ensemble_act(config), _sub_policy_plan(config.ensemble, sub_policy, seed), weights=weights)
+        return Policy(name, act_fn, weights=weights)
+    return Policy(name, act_fn, _sub_policy_plan(config.ensemble, sub_policy, seed), weights=weights)

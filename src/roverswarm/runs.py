@@ -265,7 +265,15 @@ class Run:
         """Seed ``index``'s policy of ``actor`` (on that seed's observation normaliser)."""
         norm = self.learner.obs_norm
         norm = None if norm is None else jax.tree.map(lambda x: x[index], norm)
-        return trained_policy(self.config.learner, actor, name, sub_policy, obs_norm=norm, **kwargs)
+        return trained_policy(
+            self.config.learner,
+            actor,
+            name,
+            sub_policy,
+            obs_norm=norm,
+            nearest_first=self.config.nearest_first,
+            **kwargs,
+        )
 
     def policies(self, sub_policies: SubPolicies = "random", seed: int = 0, partners: Partners = "own") -> list[Policy]:
         """Every seed's trained policy; with ensembles, a random sub-policy per agent and episode

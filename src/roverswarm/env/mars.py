@@ -50,6 +50,8 @@ class EnvParams:
     num_traps: int = struct.field(pytree_node=False, default=3)
     max_steps: int = struct.field(pytree_node=False, default=25)
     terminate_on_complete: bool = struct.field(pytree_node=False, default=False)
+    # observations list each rover's POIs, traps and other rovers nearest first (not in index order)
+    nearest_first: bool = struct.field(pytree_node=False, default=False)
     map_size: float = 1.0  # half-width of the square map [-map_size, map_size]^2
     rover_radius: float = 0.15
     poi_radius: float = 0.05  # drawn size only: POIs never collide
@@ -214,12 +216,24 @@ def other_rovers(num_rovers: int) -> np.ndarray:
 
 def observe(state: EnvState, params: EnvParams) -> jax.Array:
     """Observations ``[N, O]``: own velocity, own position, then positions relative to the
-    rover of all POIs, all traps and all other rovers (in index order, skipping itself)."""
-    n = params.num_rovers
+    rover of all POIs, all traps and all other rovers: in index order (skipping itself), or
+    with ``params.nearest_first`` each of the three groups ordered nearest first.
+
+    The nearest-first view is the same for every permutation of the layout's POIs, traps and
+    rovers, so a network need not learn each assignment of indices to places."""
     pos = state.rover_pos
-    rel = lambda targets: (targets[None, :, :] - pos[:, None, :]).reshape(n, -1)  # noqa: E731
-    rel_others = (pos[other_rovers(n)] - pos[:, None, :]).reshape(n, -1)
-    return jnp.concatenate([state.rover_vel, pos, rel(state.poi_pos), rel(state.trap_pos), rel_others], axis=-1)
+    groups = [state.poi_pos[None] - pos[:, None], state.trap_pos[None] - pos[:, None]]
+    groups.append(pos[other_rovers(params.num_rovers)] - pos[:, None])  # [N, N - 1, 2]
+    if params.nearest_first:
+        groups = [_nearest_first(g) for g in groups]
+    flat = [g.reshape(params.num_rovers, -1) for g in groups]
+    return jnp.concatenate([state.rover_vel, pos, *flat], axis=-1)
+
+
+def _nearest_first(rel: jax.Array) -> jax.Array:
+    """[N, K, 2] relative positions -> the same, each row's K points ordered by distance."""
+    order = jnp.argsort(jnp.sum(jnp.square(rel), axis=-1), axis=-1, stable=True)
+    return jnp.take_along_axis(rel, order[..., None], axis=1)
 
 
 def _observed_now(state: EnvState, params: EnvParams) -> jax.Array:
