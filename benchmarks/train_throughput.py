@@ -32,8 +32,15 @@ with uniform replay, relative to plain MADDPG in the same run (chunks alternate)
 batches per update) and ``--infer-policies`` (each agent fits the others' policies before
 each critic step).
 
-Run ``python benchmarks/train_throughput.py`` (``--quick``: N = 3 only; ``--only main`` or
-``--only extensions`` for one table; ``--preset default`` or ``--algo maddpg`` for part of the
+A third table gives the on-policy learners (``--preset mappo`` and ``ippo``: 100 parallel
+environments, 5 epochs x 4 minibatches per iteration): seconds per 1000 episodes (median of
+``--chunks`` chunks), environment steps per second of training (steps of one environment,
+all rovers moving at once), and the share of a chunk spent in the rollouts alone (the
+chunk's episodes with the stochastic policy, timed alone as one jitted scan); the rest is
+GAE and the updates.
+
+Run ``python benchmarks/train_throughput.py`` (``--quick``: N = 3 only; ``--only main``,
+``--only extensions`` or ``--only ppo`` for one table; ``--preset default`` or ``--algo maddpg`` for part of the
 main table).
 """
 
@@ -48,7 +55,8 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 
-from roverswarm.algos.learner import init_learner
+from roverswarm import onpolicy
+from roverswarm.algos.learner import ON_POLICY, init_learner
 from roverswarm.algos.maddpg import update
 from roverswarm.buffers.base import Transition, gather
 from roverswarm.env.mars import ACTION_SIZE, observation_size
@@ -184,9 +192,10 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="N = 3 only")
     parser.add_argument("--rovers", type=int, nargs="+", default=[2, 3, 4, 5], help="swarm sizes N to measure")
     parser.add_argument("--chunks", type=int, default=3, help="timed chunks per configuration")
-    parser.add_argument("--only", choices=["main", "extensions"], help="print one of the two tables")
+    parser.add_argument("--only", choices=["main", "extensions", "ppo"], help="print one of the three tables")
+    replay_presets = [name for name, preset in PRESETS.items() if preset.learner.algo not in ON_POLICY]
     parser.add_argument(
-        "--preset", choices=list(PRESETS), nargs="+", default=list(PRESETS), help="presets of the main table"
+        "--preset", choices=replay_presets, nargs="+", default=replay_presets, help="presets of the main table"
     )
     parser.add_argument(
         "--algo", choices=["maddpg", "ddpg"], nargs="+", default=["maddpg", "ddpg"], help="algorithms of the main table"
@@ -196,16 +205,19 @@ def main() -> None:
     rover_counts = (3,) if args.quick else tuple(args.rovers)
     chunks = args.chunks
     print(f"jax {jax.__version__} | {jax.devices()[0]} | 1 seed, 20 envs, replay 1e6\n")
-    if args.only != "extensions":
+    if args.only in (None, "main"):
         main_table(rover_counts, chunks, args.preset, args.algo)
-    if args.only != "main":
+    if args.only in (None, "extensions"):
         extensions_table(rover_counts, chunks)
+    if args.only in (None, "ppo"):
+        ppo_table(rover_counts, chunks)
 
 
 def main_table(rover_counts: tuple[int, ...], chunks: int, presets: list[str], algos: list[str]) -> None:
     print(
-        "| N | algo | preset | s/1000 ep | update (ms) | updates/1000 ep | overhead | ranked s/1000 ep | ranked vs uniform "
-        "| ranked replay work per update (ms) | re-ranking (ms) | ranked replay work | vs reference |"
+        "| N | algo | preset | s/1000 ep | update (ms) | updates/1000 ep | overhead | ranked s/1000 ep "
+        "| ranked vs uniform | ranked replay work per update (ms) | re-ranking (ms) | ranked replay work "
+        "| vs reference |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for n in rover_counts:
@@ -228,7 +240,8 @@ def main_table(rover_counts: tuple[int, ...], chunks: int, presets: list[str], a
                 print(
                     f"| {n} | {algo} | {preset} | {chunk:.2f} | {bare * 1e3:.2f} | {updates} | {overhead:.0%} "
                     f"| {statistics.median(ranked):.2f} | {ratio - 1:+.1%} ({low - 1:+.1%} to {high - 1:+.1%}) "
-                    f"| {(ranked_update - per_update) * 1e3:.3f} | {rerank * 1e3:.0f} | {extra / chunk:+.1%} | {versus} |",
+                    f"| {(ranked_update - per_update) * 1e3:.3f} | {rerank * 1e3:.0f} | {extra / chunk:+.1%} "
+                    f"| {versus} |",
                     flush=True,
                 )
 
@@ -243,6 +256,38 @@ def extensions_table(rover_counts: tuple[int, ...], chunks: int) -> None:
         base, ensemble, infer = chunk_seconds(configs, chunks)
         cells = [f"{statistics.median(times):.2f} | {paired_ratio(base, times)[0]:.2f}x" for times in (ensemble, infer)]
         print(f"| {n} | {statistics.median(base):.2f} | {' | '.join(cells)} |", flush=True)
+
+
+def ppo_table(rover_counts: tuple[int, ...], chunks: int) -> None:
+    print("\n| N | algo | s/1000 ep | env steps/s | rollouts | GAE and updates |")
+    print("|---|---|---|---|---|---|")
+    for n in rover_counts:
+        for algo in ON_POLICY:
+            config = with_options(PRESETS[algo], dict(scenario=f"paper-{n}"))
+            params = validate(config)
+            runner = onpolicy.init_runner(config, params)
+            runner, metrics = onpolicy.run_chunk(config, params, runner)  # compile
+            jax.block_until_ready(metrics)
+            spent = []
+            for _ in range(chunks):
+                start = time.perf_counter()
+                runner, metrics = onpolicy.run_chunk(config, params, runner)
+                jax.block_until_ready(metrics)
+                spent.append(time.perf_counter() - start)
+            chunk = statistics.median(spent)
+            actor = jax.tree.map(lambda x: x[0], runner.learner.actor)
+            iterations = config.log_every // config.num_envs
+
+            @jax.jit
+            def rollouts(key):
+                def one(total, k):
+                    return total + onpolicy.collect(config, params, actor, k)[1]["episode_reward"].sum(), None
+
+                return jax.lax.scan(one, jnp.zeros(()), jax.random.split(key, iterations))[0]
+
+            share = median_seconds(lambda: rollouts(jax.random.PRNGKey(0)), repeats=chunks) / chunk
+            steps = config.log_every * params.max_steps / chunk
+            print(f"| {n} | {algo} | {chunk:.2f} | {steps:,.0f} | {share:.0%} | {1 - share:.0%} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -39,6 +39,24 @@ def tiny_config():
     )
 
 
+@pytest.fixture(scope="session")
+def tiny_ppo_config():
+    """A small, fast MAPPO configuration (the mappo preset, shrunk) shared by the PPO tests."""
+    import dataclasses
+
+    from roverswarm.config import MAPPO, with_options
+
+    return dataclasses.replace(
+        with_options(MAPPO, {"hidden": (16,), "epochs": 2, "minibatches": 2}),
+        scenario="paper-2",
+        episodes=400,
+        seeds=2,
+        num_envs=4,
+        log_every=100,
+        checkpoint_every=1,
+    )
+
+
 @pytest.fixture
 def signal_at_chunk(monkeypatch):
     """``arm(signum, chunk)`` makes the next training send ``signum`` to this process just

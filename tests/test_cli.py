@@ -47,6 +47,15 @@ def test_render_writes_an_animation_and_its_last_frame(tmp_path):
             "--scenario paper-2 and --mission: the mission file sets the layout and the number of rovers; "
             "give one of them",
         ),
+        # numbers the program cannot represent or use, refused by class before anything runs
+        (["train", "--actor-lr", "inf"], "--actor-lr must be a finite number, got inf"),
+        (["train", "--alpha", "nan"], "--alpha must be a finite number, got nan"),
+        (["train", "--tau", "1.5"], "--tau must be in (0, 1]"),
+        (["train", "--seed", str(2**64 + 1)], "--seed must be in [0, 2^32)"),
+        (["train", "--episodes", str(10**20)], "--episodes must be below 2^31"),
+        (["train", "--hidden", "0", "64"], "--hidden needs 1 or more widths in [1, 65536]"),
+        (["train", "--preset", "mappo", "--twin-critics"], "--twin-critics True does not apply: --algo mappo"),
+        (["train", "--epochs", "3"], "--epochs 3 does not apply: it is a PPO option"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_code_2(argv, message, capsys, tmp_path, monkeypatch):

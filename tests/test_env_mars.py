@@ -236,6 +236,9 @@ def test_unknown_preset_names_the_choices():
         ("num_rovers", 0, "num_rovers must be >= 1"),
         ("num_traps", -1, "num_traps must be >= 0"),
         ("map_size", 0.0, "map_size must be positive"),
+        ("trap_radius", 1e39, "trap_radius must be a finite number representable as float32"),
+        ("collision_penalty", float("nan"), "collision_penalty must be a finite number"),
+        ("max_steps", 10**20, "max_steps must be below 2"),
     ],
 )
 def test_bad_params_name_the_field(field, value, pattern):

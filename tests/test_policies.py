@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import jax
@@ -9,6 +10,7 @@ import numpy as np
 import pytest
 
 from roverswarm.algos.learner import AlgoConfig, init_learner
+from roverswarm.config import TrainConfig
 from roverswarm.env import get_scenario
 from roverswarm.env.mars import observation_size
 from roverswarm.rollout import rollout
@@ -67,11 +69,11 @@ def test_episode_reward_is_the_sum_of_per_rover_step_rewards():
 
 def test_a_trained_policy_sees_the_view_it_was_trained_on_whatever_the_environment_shows():
     params = get_scenario("paper-3")
-    config = AlgoConfig(share_parameters=True, hidden=(16,))
-    learner = init_learner(jax.random.PRNGKey(0), config, params.num_rovers, observation_size(params))
+    config = TrainConfig(learner=AlgoConfig(share_parameters=True, hidden=(16,)), nearest_first=True)
+    learner = init_learner(jax.random.PRNGKey(0), config.learner, params.num_rovers, observation_size(params))
     key = jax.random.PRNGKey(1)
-    nearest = trained_policy(config, learner.actor, nearest_first=True)
+    nearest = trained_policy(config, learner.actor)
     shown = {view: rollout(nearest, key, params.replace(nearest_first=view), 8).rewards for view in (True, False)}
     np.testing.assert_allclose(shown[True], shown[False], rtol=1e-5)  # other programs: rounding only
-    indexed = rollout(trained_policy(config, learner.actor), key, params, 8).rewards
-    assert not np.allclose(indexed, shown[True])
+    indexed = rollout(trained_policy(dataclasses.replace(config, nearest_first=False), learner.actor), key, params, 8)
+    assert not np.allclose(indexed.rewards, shown[True])

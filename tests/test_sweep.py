@@ -13,19 +13,25 @@ from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
 from roverswarm.experiments.sweep import SweepConfig, load_sweep, sweep
 
+TINY_PPO = dict(num_envs=4, log_every=100, checkpoint_every=1, hidden=[16], epochs=2, minibatches=2)
 TINY = dict(num_envs=4, batch_size=64, buffer_size=4000, warmup=500, log_every=100, checkpoint_every=1, hidden=[32, 32])
 
 
 @pytest.fixture(scope="module")
 def finished(tmp_path_factory):
-    """A sweep of two settings on paper-2 (the first is the shared tiny config), trained and evaluated."""
+    """A sweep of three settings on paper-2 (the first is the shared tiny config, the last starts
+    from another preset: MAPPO), trained and evaluated."""
     folder = tmp_path_factory.mktemp("sweep")
     spec = {
         "preset": "default",
         "scenarios": ["paper-2"],
         "seeds": 2,
         "episodes": 400,
-        "settings": {"plain": dict(TINY), "shared-td3": {**TINY, "share_parameters": True, "twin_critics": True}},
+        "settings": {
+            "plain": dict(TINY),
+            "shared-td3": {**TINY, "share_parameters": True, "twin_critics": True},
+            "mappo": {"preset": "mappo", **TINY_PPO},
+        },
     }
     (folder / "sweep.yaml").write_text(yaml.safe_dump(spec))
     config = SweepConfig(folder / "sweep.yaml", folder / "out", eval_episodes=50)
@@ -36,18 +42,22 @@ def test_a_sweep_writes_one_row_per_run_with_every_seed(finished, tiny_config):
     config, table = finished
     with open(config.out / "sweep.csv", newline="") as f:
         rows = list(csv.DictReader(f))
-    assert [(r["scenario"], r["setting"]) for r in rows] == [("paper-2", "plain"), ("paper-2", "shared-td3")]
     runs = load_sweep(config.file, config.out)
-    assert runs[0].config == with_options(tiny_config, {"episodes": 400, "seeds": 2, "scenario": "paper-2"})
-    assert runs[1].config.learner.share_parameters and runs[1].config.learner.twin_critics
+    assert [r["setting"] for r in rows] == [run.algorithm for run in runs] == ["mappo", "plain", "shared-td3"]
+    by_name = {run.algorithm: run.config for run in runs}  # (the YAML was written with sorted keys)
+    assert by_name["plain"] == with_options(tiny_config, {"episodes": 400, "seeds": 2, "scenario": "paper-2"})
+    assert by_name["shared-td3"].learner.share_parameters and by_name["shared-td3"].learner.twin_critics
+    assert by_name["mappo"].learner.algo == "mappo" and by_name["mappo"].nearest_first
     for row, run in zip(rows, runs):  # the scores are the deterministic evaluation's, seed by seed
         evaluated = evaluate_run(run.folder, episodes=50)
         scores = [f"{r['normalized_score']:.2f}" for r in evaluated[2:]]
         assert row["scores"] == " / ".join(scores) and len(scores) == 2
         assert float(row["min_score"]) == pytest.approx(min(r["normalized_score"] for r in evaluated[2:]))
         assert float(row["oracle_trap_contacts"]) == pytest.approx(evaluated[1]["trap_contacts"])
+        assert float(row["random_reward"]) == pytest.approx(evaluated[0]["episode_reward"])
         assert float(row["train_minutes"]) > 0
     assert "shared-td3" in table.read_text()
+    assert (config.out / "sweep.png").stat().st_size > 10_000
 
 
 def test_a_rerun_keeps_finished_runs(finished, monkeypatch):
@@ -66,6 +76,7 @@ def test_a_rerun_keeps_finished_runs(finished, monkeypatch):
         ({"preset": "fast", "settings": {"a": {}}}, "preset must be one of default, reference, swarm"),
         ({"settings": {"a": {"share_parameters": True, "ensemble": 2}}}, "--share-parameters does not compose"),
         ({"settings": {}}, "settings must map names to options"),
+        ({"settings": {"a": {"preset": "fast"}}}, "setting 'a': preset must be one of"),
         ({"runs": 3, "settings": {"a": {}}}, "unknown keys ['runs']"),
     ],
 )

@@ -6,6 +6,7 @@ import dataclasses
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -18,7 +19,7 @@ from roverswarm.cli import main
 from roverswarm.errors import RunStopped
 from roverswarm.evaluate import evaluate_run
 from roverswarm.config import REFERENCE, TrainConfig, config_from_json, with_options
-from roverswarm.runs import CHECKPOINT, Run, read_metrics
+from roverswarm.runs import CHECKPOINT, LOCK, Run, read_metrics
 from roverswarm.trainer import train
 
 TIMELESS = lambda rows: [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rows]  # noqa: E731
@@ -30,7 +31,7 @@ def cli_args(config: TrainConfig) -> list[str]:
     for f in dataclasses.fields(config):
         value = getattr(config, f.name)
         flag = f.name.replace("_", "-")
-        if f.name in ("learner", "buffer"):
+        if f.name in ("learner", "buffer", "ppo"):
             args += cli_args(value)
         elif isinstance(value, bool):
             args.append(f"--{flag}" if value else f"--no-{flag}")
@@ -95,13 +96,18 @@ SWARM_OPTIONS = dict(
 """The swarm preset's learner options (and reward scaling) on the tiny config."""
 
 
-@pytest.mark.parametrize("options", [{}, SWARM_OPTIONS], ids=["default", "swarm"])
-def test_resume_after_sigkill_gives_the_numbers_of_an_unbroken_run(unbroken, tiny_config, tmp_path, options):
+@pytest.mark.parametrize("kind", ["default", "swarm", "mappo"])
+def test_resume_after_sigkill_gives_the_numbers_of_an_unbroken_run(tiny_config, tiny_ppo_config, tmp_path, kind):
     """Killed mid-run and resumed, the metrics are the unbroken run's: replay, networks,
-    optimisers and (swarm options) the observation normaliser and the update counter are all
-    in the checkpoint."""
+    optimisers and (swarm options) the observation normaliser and the update counter, (mappo)
+    the value-target statistics, are all in the checkpoint."""
+    base, options = {
+        "default": (tiny_config, {}),
+        "swarm": (tiny_config, SWARM_OPTIONS),
+        "mappo": (tiny_ppo_config, {}),
+    }[kind]
     out = tmp_path / "killed"
-    config = with_options(tiny_config, {**options, "episodes": 2000})
+    config = with_options(base, {**options, "episodes": 2000})
     reference = train(config, progress=False)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     process = subprocess.Popen(
@@ -215,6 +221,30 @@ def test_resume_with_a_different_config_is_refused(unbroken, capsys):
     assert "has scenario='paper-2', not 'paper-5'" in capsys.readouterr().err
     assert main(["train", "--out", str(unbroken.out), "--scenario", "paper-2"]) == 2
     assert "already holds a run" in capsys.readouterr().err
+
+
+def test_a_folder_being_written_is_refused_and_a_stale_lock_is_taken_over(tiny_config, tmp_path, capsys):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    writer = subprocess.Popen(["sleep", "60"])  # a live process holds the folder
+    try:
+        (out / LOCK).write_text(f"{writer.pid} {socket.gethostname()}")
+        args = ["train", *cli_args(dataclasses.replace(tiny_config, episodes=100)), "--out", str(out)]
+        assert main(args) == 2
+        err = capsys.readouterr().err
+        assert f"is being written by process {writer.pid}" in err and err.count("\n") == 1
+        assert not (out / "config.json").exists() and (out / LOCK).exists()
+    finally:
+        writer.kill()
+        writer.wait()
+    # its process is gone: the lock is stale, taken over, and released at the end
+    assert main(args) == 0
+    assert (out / CHECKPOINT).exists() and not (out / LOCK).exists()
+    assert (out / "notes.txt").read_text() == "mine"
+    # a failed command leaves no empty folder behind
+    assert main(["train", "--resume", str(tmp_path / "typo")]) == 2
+    assert not (tmp_path / "typo").exists()
 
 
 def test_evaluate_reports_policies_beside_random_and_oracle(unbroken, capsys):

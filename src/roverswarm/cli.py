@@ -34,12 +34,12 @@ class ScenariosCommand:
 
 @dataclass(frozen=True)
 class TrainCommand:
-    """Train MADDPG or DDPG on a scenario (seeds vmapped); writes metrics, checkpoints, curves."""
+    """Train MADDPG, DDPG, MAPPO or IPPO on a scenario (seeds vmapped); writes metrics, checkpoints, curves."""
 
-    preset: Literal["default", "reference", "swarm"] = "default"
-    """Starting values of every option: `default` (tuned to learn), `reference` (the reference
-    MADDPG code's), or `swarm` (shared networks with rover ids and MATD3; provisional, see docs/results/swarm).
-    Options given beside it change them."""
+    preset: Literal["default", "reference", "swarm", "mappo", "ippo"] = "default"
+    """Starting values of every option: `default` (MADDPG tuned to learn), `reference` (the
+    reference MADDPG code's), `swarm` (shared networks with rover ids, MATD3, nearest-first view; provisional,
+    see docs/results/swarm), `mappo` or `ippo` (PPO). Options given beside it change them."""
     config: TrainConfig = field(default_factory=TrainConfig)
     out: Path | None = None
     """Output folder (config.json, metrics.csv, tb/, checkpoint.npz, learning_curve.png)."""

@@ -13,7 +13,8 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from roverswarm.algos.learner import ALGOS, AlgoConfig
+from roverswarm.algos.learner import ALGOS, ON_POLICY, AlgoConfig
+from roverswarm.algos.ppo import PPOConfig
 from roverswarm.buffers.base import ReplayConfig
 from roverswarm.env.mars import EnvParams
 from roverswarm.env.missions import load_mission
@@ -40,6 +41,7 @@ class TrainConfig:
     order: the same view for every numbering of a layout."""
     learner: AlgoConfig = field(default_factory=AlgoConfig)
     buffer: ReplayConfig = field(default_factory=ReplayConfig)
+    ppo: PPOConfig = field(default_factory=PPOConfig)
     episodes: int = 60_000
     """Training episodes per seed (a multiple of --log-every)."""
     seeds: int = 1
@@ -83,15 +85,34 @@ REFERENCE = TrainConfig(
 networks (2 x 64); the rest are the reference code's, not the paper's."""
 
 SWARM = TrainConfig(
+    nearest_first=True,
     learner=AlgoConfig(share_parameters=True, twin_critics=True, target_noise=0.2, actor_delay=2),
 )
 """Homogeneous rovers learning together: one shared actor and critic (with the rover's id),
-twin critics with target smoothing and delayed actor updates (MATD3): the best setting of
-the first paper-5 sweep (``docs/results/swarm/``; layer norm and observation normalisation
-made it worse there). Provisional: it does not yet meet its targets (0.10 / 0.16 on paper-5
-after 20,000 episodes)."""
+twin critics with target smoothing and delayed actor updates (MATD3), on the nearest-first
+view. The best settings of the paper-5 sweeps (``docs/results/swarm/``): MATD3 over shared
+networks 0.10 / 0.16 after 20,000 episodes, with the nearest-first view 0.35 / 0.37; layer
+norm and observation normalisation made it worse. Provisional: it does not yet meet its
+targets."""
 
-PRESETS: dict[str, TrainConfig] = {"default": TrainConfig(), "reference": REFERENCE, "swarm": SWARM}
+MAPPO = TrainConfig(
+    nearest_first=True,
+    num_envs=100,
+    learner=AlgoConfig(algo="mappo", actor_lr=1e-3, critic_lr=1e-3, gamma=0.95, grad_clip=0.5, hidden=(64, 64)),
+)
+"""MAPPO (:mod:`roverswarm.algos.ppo`): one shared actor, a centralised value, 100 parallel
+environments, tanh 2 x 64 networks, on the nearest-first view."""
+
+IPPO = dataclasses.replace(MAPPO, learner=dataclasses.replace(MAPPO.learner, algo="ippo"))
+"""IPPO: as :data:`MAPPO` with a local value V(o_i, i)."""
+
+PRESETS: dict[str, TrainConfig] = {
+    "default": TrainConfig(),
+    "reference": REFERENCE,
+    "swarm": SWARM,
+    "mappo": MAPPO,
+    "ippo": IPPO,
+}
 """Named starting points of `roverswarm train --preset`; other options change them."""
 
 
@@ -106,8 +127,57 @@ def _finite(value: float, low: float, what: str, strict: bool = False) -> None:
     require(ok, f"--{what} must be a finite number {'>' if strict else '>='} {low}, got {value}")
 
 
+_PPO_USES = {"algo", "actor_lr", "critic_lr", "gamma", "grad_clip", "hidden"}
+"""The learner options PPO reads; the other ones are MADDPG's."""
+_OFF_POLICY_RUN = ("update_every", "warmup", "noise_std", "noise_final", "noise_decay_episodes")
+"""The run options of learning from a replay with exploration noise."""
+
+
+def _algo_options(config: TrainConfig) -> None:
+    """Options of the other kind of learner must stay at their defaults: the replay,
+    exploration noise and MADDPG options with --algo mappo/ippo, the PPO options otherwise."""
+    defaults = TrainConfig()
+    if config.learner.algo in ON_POLICY:
+        maddpg_only = [f.name for f in dataclasses.fields(AlgoConfig) if f.name not in _PPO_USES]
+        groups = [(config, defaults, _OFF_POLICY_RUN), (config.learner, defaults.learner, maddpg_only)]
+        groups.append((config.buffer, defaults.buffer, [f.name for f in dataclasses.fields(ReplayConfig)]))
+        kind = f"--algo {config.learner.algo} learns on-policy (start from --preset {config.learner.algo})"
+    else:
+        groups = [(config.ppo, defaults.ppo, [f.name for f in dataclasses.fields(PPOConfig)])]
+        kind = f"it is a PPO option (--algo mappo or ippo), and this run is --algo {config.learner.algo}"
+    for given, default, names in groups:
+        for name in names:
+            value = getattr(given, name)
+            require(
+                value == getattr(default, name),
+                f"--{name.replace('_', '-')} {value} does not apply: {kind}; leave it at {getattr(default, name)}",
+            )
+
+
+def _representable(config: TrainConfig) -> None:
+    """Every number can be represented where it is used: floats finite, counts below 2^31
+    (int32 counters), the seed below 2^32 (a PRNG key keeps only its low 32 bits), widths
+    between 1 and 2^16."""
+    for name, value in fields_by_name(config).items():
+        flag = f"--{name.replace('_', '-')}"
+        if isinstance(value, bool) or value is None or isinstance(value, str):
+            continue
+        if isinstance(value, float):
+            require(math.isfinite(value), f"{flag} must be a finite number, got {value}")
+        elif name == "seed":
+            require(0 <= value < 2**32, f"{flag} must be in [0, 2^32), got {value}")
+        elif name == "hidden":
+            require(
+                len(value) >= 1 and all(1 <= w <= 2**16 for w in value),
+                f"{flag} needs 1 or more widths in [1, 65536], got {value}",
+            )
+        else:
+            require(abs(value) < 2**31, f"{flag} must be below 2^31, got {value}")
+
+
 def validate(config: TrainConfig) -> EnvParams:
     """Check ``config``; raise :class:`UserError` naming the bad field. Returns the env params."""
+    _representable(config)
     require(
         config.mission is None or config.scenario == DEFAULT_SCENARIO,
         f"--scenario {config.scenario} and --mission: the mission file sets the layout and the number "
@@ -117,6 +187,7 @@ def validate(config: TrainConfig) -> EnvParams:
     params = params.replace(nearest_first=config.nearest_first)
     learner, replay = config.learner, config.buffer
     require(learner.algo in ALGOS, f"--algo must be one of {', '.join(ALGOS)}, got '{learner.algo}'")
+    _algo_options(config)
     require(replay.replay in ("uniform", "ranked"), f"--replay must be 'uniform' or 'ranked', got '{replay.replay}'")
     require(replay.alpha >= 0, f"--alpha must be >= 0, got {replay.alpha}")
     require(0 <= replay.beta <= 1, f"--beta must be in [0, 1], got {replay.beta}")
@@ -143,6 +214,7 @@ def validate(config: TrainConfig) -> EnvParams:
     for name in ("actor_lr", "critic_lr", "tau", "grad_clip"):
         value = getattr(learner, name)
         require(value > 0, f"--{name.replace('_', '-')} must be positive, got {value}")
+    require(learner.tau <= 1, f"--tau must be in (0, 1] (the share of the new weights per update), got {learner.tau}")
     require(learner.ensemble >= 1, f"--ensemble must be >= 1 (sub-policies per agent), got {learner.ensemble}")
     require(learner.infer_entropy >= 0, f"--infer-entropy must be >= 0, got {learner.infer_entropy}")
     require(learner.infer_window >= 1, f"--infer-window must be >= 1 transition, got {learner.infer_window}")
@@ -171,7 +243,28 @@ def validate(config: TrainConfig) -> EnvParams:
     for name in ("noise_std", "noise_final", "noise_decay_episodes"):
         value = getattr(config, name)
         require(value >= 0, f"--{name.replace('_', '-')} must be >= 0, got {value}")
+    if learner.algo in ON_POLICY:
+        _ppo_ranges(config, params)
     return params
+
+
+def _ppo_ranges(config: TrainConfig, params: EnvParams) -> None:
+    ppo = config.ppo
+    _positive(ppo, ("epochs", "minibatches"))
+    samples = params.max_steps * config.num_envs * params.num_rovers
+    require(
+        samples % ppo.minibatches == 0,
+        f"--minibatches ({ppo.minibatches}) must divide the samples per iteration "
+        f"(episode length x --num-envs x rovers = {samples})",
+    )
+    _finite(ppo.clip_eps, 0, "clip-eps", strict=True)
+    if ppo.value_clip is not None:
+        _finite(ppo.value_clip, 0, "value-clip", strict=True)
+    require(0 <= ppo.gae_lambda <= 1, f"--gae-lambda must be in [0, 1], got {ppo.gae_lambda}")
+    for name in ("ent_coef", "vf_coef"):
+        _finite(getattr(ppo, name), 0, name.replace("_", "-"))
+    require(ppo.anneal_episodes >= 0, f"--anneal-episodes must be >= 0, got {ppo.anneal_episodes}")
+    require(ppo.activation in ("tanh", "relu"), f"--activation must be 'tanh' or 'relu', got '{ppo.activation}'")
 
 
 # ----------------------------------------------------------------------------- options and JSON
@@ -186,7 +279,7 @@ def fields_by_name(config) -> dict[str, object]:
     return flat
 
 
-_NESTED = {"learner": AlgoConfig, "buffer": ReplayConfig}
+_NESTED = {"learner": AlgoConfig, "buffer": ReplayConfig, "ppo": PPOConfig}
 
 
 def with_options(base: TrainConfig, options: dict[str, object], where: str = "options") -> TrainConfig:
@@ -229,6 +322,7 @@ def config_from_json(text: str) -> TrainConfig:
         for f in dataclasses.fields(ReplayConfig):
             if f.name in raw:
                 replay[f.name] = raw.pop(f.name)
-        return TrainConfig(**raw, learner=AlgoConfig(**learner), buffer=ReplayConfig(**replay))
+        ppo = PPOConfig(**raw.pop("ppo", {}))
+        return TrainConfig(**raw, learner=AlgoConfig(**learner), buffer=ReplayConfig(**replay), ppo=ppo)
     except (ValueError, KeyError, TypeError, AttributeError) as error:
         raise UserError(f"config.json is not a roverswarm training config ({type(error).__name__}: {error})") from error

@@ -26,7 +26,7 @@ from roverswarm.env.render import FrameRenderer, save_animation
 from roverswarm.errors import require
 from roverswarm.policies import ORACLE, REFERENCE_POLICIES, Policy
 from roverswarm.rollout import MissionStats, Rollout, rollout
-from roverswarm.runs import Run, write_csv
+from roverswarm.runs import Run, folder_lock, write_csv
 
 
 @dataclass(frozen=True)
@@ -269,39 +269,39 @@ def run_mission(
     data = rollout(policy, jax.random.PRNGKey(seed), mission.params, episodes, fail_step=fail_step)
     stats = MissionStats.of(data)
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    files = {
-        name: out / name
-        for name in (
-            "trajectories.csv",
-            "metrics.csv",
-            "metrics.md",
-            "routes.png",
-            f"mission.{animation}",
-            "mission.png",
-        )
-    }
-    trajectory = [
-        {
-            "episode": e,
-            "step": t,
-            "rover": i,
-            "x": float(x),
-            "y": float(y),
-            "working": bool(t < fail_step[i]),
-            "pois_observed": int(data.observed[e, t].sum()),
+    with folder_lock(out):
+        files = {
+            name: out / name
+            for name in (
+                "trajectories.csv",
+                "metrics.csv",
+                "metrics.md",
+                "routes.png",
+                f"mission.{animation}",
+                "mission.png",
+            )
         }
-        for e in range(episodes)
-        for t in range(data.rover_pos.shape[1])
-        for i, (x, y) in enumerate(data.rover_pos[e, t])
-    ]
-    _write_rows(trajectory, files["trajectories.csv"])
-    _write_rows(_metrics_rows(stats, mission), files["metrics.csv"])
-    files["metrics.md"].write_text(mission_report(stats, mission, policy.name, fail_step))
-    title = f"{mission.name}: {policy.name}"
-    _routes_png(data, mission, stats, fail_step, files["routes.png"], title)
-    save_animation(episode_frames(data, mission.params, 0, title).frames, files[f"mission.{animation}"])
-    return MissionResult(stats=stats, files=files)
+        trajectory = [
+            {
+                "episode": e,
+                "step": t,
+                "rover": i,
+                "x": float(x),
+                "y": float(y),
+                "working": bool(t < fail_step[i]),
+                "pois_observed": int(data.observed[e, t].sum()),
+            }
+            for e in range(episodes)
+            for t in range(data.rover_pos.shape[1])
+            for i, (x, y) in enumerate(data.rover_pos[e, t])
+        ]
+        _write_rows(trajectory, files["trajectories.csv"])
+        _write_rows(_metrics_rows(stats, mission), files["metrics.csv"])
+        files["metrics.md"].write_text(mission_report(stats, mission, policy.name, fail_step))
+        title = f"{mission.name}: {policy.name}"
+        _routes_png(data, mission, stats, fail_step, files["routes.png"], title)
+        save_animation(episode_frames(data, mission.params, 0, title).frames, files[f"mission.{animation}"])
+        return MissionResult(stats=stats, files=files)
 
 
 # ----------------------------------------------------------------------------- stress
@@ -378,34 +378,35 @@ def stress_mission(
     policies = [policy] if policy.name == ORACLE.name else [policy, ORACLE]
     rows, curves = stress_rows(policies, mission, episodes, seed)
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    _write_rows(rows, out / "stress.csv")
-    header = [
-        "policy",
-        "condition",
-        "success",
-        "time to observe all (steps)",
-        "POIs observed",
-        "collisions",
-        "trap contacts",
-    ]
-    body = [
-        [
-            r["policy"],
-            r["condition"],
-            f"{r['success']:.0%}",
-            r["time_to_all"],
-            r["pois_observed"],
-            r["collisions"],
-            r["trap_contacts"],
+    with folder_lock(out):
+        _write_rows(rows, out / "stress.csv")
+        header = [
+            "policy",
+            "condition",
+            "success",
+            "time to observe all (steps)",
+            "POIs observed",
+            "collisions",
+            "trap contacts",
         ]
-        for r in rows
-    ]
-    (out / "stress.md").write_text(
-        f"# Mission '{mission.name}': one rover fails\n\n{episodes} episodes per row, seed {seed}. In the failure rows "
-        "one rover, drawn uniformly, stops for good at a step drawn uniformly before the policy's own time to observe "
-        "all POIs in that episode without failure (before the episode's end if it never does): a later failure would "
-        "change nothing. Time to observe all is the mean over successful episodes.\n\n" + markdown_table(header, body)
-    )
-    _stress_png(curves, rows, mission, out / "stress.png")
+        body = [
+            [
+                r["policy"],
+                r["condition"],
+                f"{r['success']:.0%}",
+                r["time_to_all"],
+                r["pois_observed"],
+                r["collisions"],
+                r["trap_contacts"],
+            ]
+            for r in rows
+        ]
+        (out / "stress.md").write_text(
+            f"# Mission '{mission.name}': one rover fails\n\n{episodes} episodes per row, seed {seed}. "
+            "In the failure rows one rover, drawn uniformly, stops for good at a step drawn uniformly before the "
+            "policy's own time to observe all POIs in that episode without failure (before the episode's end if it "
+            "never does): a later failure would change nothing. Time to observe all is the mean over successful "
+            "episodes.\n\n" + markdown_table(header, body)
+        )
+        _stress_png(curves, rows, mission, out / "stress.png")
     return rows

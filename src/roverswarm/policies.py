@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -31,9 +31,14 @@ import numpy as np
 from flax import struct
 from scipy.optimize import linear_sum_assignment
 
-from roverswarm.algos.learner import AlgoConfig, act
+from roverswarm.algos.learner import ON_POLICY, AlgoConfig, act
 from roverswarm.algos.normalize import ObsNorm
+from roverswarm.algos.ppo import PPOConfig
+from roverswarm.algos.ppo import act as ppo_act
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, EnvState, observe, other_rovers, trap_radii
+
+if TYPE_CHECKING:
+    from roverswarm.config import TrainConfig
 
 Plan = Any
 ActFn = Callable[[jax.Array, jax.Array, EnvState, Plan, Any, EnvParams], jax.Array]
@@ -205,13 +210,15 @@ REFERENCE_POLICIES: dict[str, Policy] = {p.name: p for p in (RANDOM, ORACLE)}
 
 
 @functools.lru_cache(maxsize=None)
-def _trained_act(config: AlgoConfig, nearest_first: bool) -> ActFn:
+def _trained_act(learner: AlgoConfig, ppo: PPOConfig | None, nearest_first: bool) -> ActFn:
     # one function object per learner config, so rollouts of new weights reuse the compiled code
     def act_fn(key, obs, state, plan, weights, params):
         if params.nearest_first != nearest_first:  # an environment showing another view than training's
             obs = observe(state, params.replace(nearest_first=nearest_first))
         actor, obs_norm = weights
-        return act(config, actor, obs, plan, obs_norm)  # plan: with ensembles, every agent's sub-policy [N]
+        if ppo is not None:
+            return ppo_act(learner, ppo, actor, obs)
+        return act(learner, actor, obs, plan, obs_norm)  # plan: with ensembles, every agent's sub-policy [N]
 
     return act_fn
 
@@ -230,21 +237,21 @@ def _sub_policy_plan(num_policies: int, sub_policy: int | None, seed: int) -> Pl
 
 
 def trained_policy(
-    config: AlgoConfig,
+    config: TrainConfig,
     actor_params,
     name: str = "trained",
     sub_policy: int | None = None,
     seed: int = 0,
     obs_norm: ObsNorm | None = None,
-    nearest_first: bool = False,
 ) -> Policy:
-    """The deterministic policy (no exploration noise) of trained actors [N * K, ...] (or [1, ...]
-    shared), on observations standardised by ``obs_norm`` (runs with --normalize-obs) and in
-    the view it was trained on (``nearest_first``, whatever view the environment shows). With
-    ensembles (K > 1) every agent runs sub-policy ``sub_policy``, or, if None, one drawn per
-    episode as in training (by a generator seeded with ``seed``)."""
+    """The deterministic policy (no exploration noise) of the actors [N * K, ...] (or [1, ...]
+    shared) trained by ``config``, on observations standardised by ``obs_norm`` (runs with
+    --normalize-obs) and in the view it was trained on (--nearest-first), whatever view the
+    environment shows. With ensembles (K > 1) every agent runs sub-policy ``sub_policy``, or,
+    if None, one drawn per episode as in training (by a generator seeded with ``seed``)."""
+    learner = config.learner
     weights = (actor_params, obs_norm)
-    act_fn = _trained_act(config, nearest_first)
-    if config.ensemble == 1:
+    act_fn = _trained_act(learner, config.ppo if learner.algo in ON_POLICY else None, config.nearest_first)
+    if learner.ensemble == 1:
         return Policy(name, act_fn, weights=weights)
-    return Policy(name, act_fn, _sub_policy_plan(config.ensemble, sub_policy, seed), weights=weights)
+    return Policy(name, act_fn, _sub_policy_plan(learner.ensemble, sub_policy, seed), weights=weights)

@@ -9,27 +9,95 @@ and policies, one way, for every command that reads a run.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import functools
 import os
+import socket
 import zipfile
 from pathlib import Path
-from typing import Literal
+from typing import Iterator, Literal
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import serialization
+from flax import serialization, struct
 
-from roverswarm.algos.learner import LearnerState, init_learner
+from roverswarm.algos.learner import ON_POLICY, LearnerState, init_learner
+from roverswarm.algos.ppo import PPOState, init_ppo
+from roverswarm.buffers.base import BufferState
 from roverswarm.config import TrainConfig, config_from_json, validate
 from roverswarm.env.mars import EnvParams, observation_size
 from roverswarm.errors import UserError, require
 from roverswarm.policies import Policy, trained_policy
 
+
+@struct.dataclass
+class Runner:
+    """Everything training carries from chunk to chunk, and what a checkpoint holds (leading [S]
+    where per seed)."""
+
+    learner: LearnerState | PPOState  # [S, ...] the networks, their optimisers and statistics
+    buffer: BufferState | None  # [S, C, ...] the replay (None on-policy)
+    key: jax.Array  # [S] PRNG keys
+    episodes: jax.Array  # [] int32, episodes per seed so far (shared by all seeds)
+    updates: jax.Array  # [] int32, updates of every network per seed so far (shared)
+
+
 CHECKPOINT = "checkpoint.npz"
 CONFIG = "config.json"
 METRICS = "metrics.csv"
+LOCK = ".lock"
+
+
+@contextlib.contextmanager
+def folder_lock(folder: Path) -> Iterator[None]:
+    """Create ``folder`` if needed and hold ``folder/.lock`` (the writer's process id and host)
+    while writing it: a second writer gets :class:`UserError` instead of mixing its files
+    with the first's. A lock whose process is gone (a killed run, on this host) is taken over.
+    A folder created here and left empty is removed again."""
+    created = not folder.exists()
+    folder.mkdir(parents=True, exist_ok=True)
+    path, me = folder / LOCK, f"{os.getpid()} {socket.gethostname()}"
+    while True:
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+            break
+        except FileExistsError:
+            owner = _lock_owner(path)
+            if owner is not None:
+                raise UserError(
+                    f"'{folder}' is being written by process {owner} (its {LOCK}); wait for it to finish, choose "
+                    f"another --out, or delete '{path}' if that process is gone"
+                ) from None
+            path.unlink(missing_ok=True)  # stale: its writer is gone
+    with os.fdopen(fd, "w") as f:
+        f.write(me)
+    try:
+        yield
+    finally:
+        path.unlink(missing_ok=True)
+        if created and not any(folder.iterdir()):
+            folder.rmdir()
+
+
+def _lock_owner(path: Path) -> str | None:
+    """'PID on HOST' of a lock's live writer; None if the lock is stale (its process is gone
+    from this host) or vanished. A writer on another host is taken to be alive."""
+    try:
+        pid, host = path.read_text().split()
+    except FileNotFoundError:
+        return None
+    except ValueError:  # being written this instant, or garbage: treat as held
+        return "(unknown)"
+    if host == socket.gethostname():
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            return None
+        except PermissionError:  # alive, someone else's
+            pass
+    return f"{pid} on {host}"
 
 
 def _flatten(tree: dict, prefix: str = "") -> dict[str, np.ndarray]:
@@ -73,10 +141,11 @@ def save_checkpoint(path: Path, runner, replay: bool = True) -> None:
     makes the file hundreds of times smaller.
     """
     runner = jax.device_get(runner)
-    filled = int(np.max(runner.buffer.size))
-    runner = runner.replace(
-        buffer=runner.buffer.replace(data=jax.tree.map(lambda x: x[:, :filled], runner.buffer.data))
-    )
+    if runner.buffer is not None:
+        filled = int(np.max(runner.buffer.size))
+        runner = runner.replace(
+            buffer=runner.buffer.replace(data=jax.tree.map(lambda x: x[:, :filled], runner.buffer.data))
+        )
     arrays = _flatten(serialization.to_state_dict(runner))
     if not replay:
         arrays = {k: v for k, v in arrays.items() if not k.startswith("buffer/")}
@@ -90,12 +159,14 @@ def save_checkpoint(path: Path, runner, replay: bool = True) -> None:
 
 def load_checkpoint(path: Path, template):
     """Read a runner written by :func:`save_checkpoint` into the structure of ``template``."""
-    capacity = jax.tree.leaves(template.buffer.data)[0].shape[1]
     try:
         with np.load(path, allow_pickle=False) as data:
             flat = dict(data)
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
         raise UserError(f"'{path}' cannot be read ({error}); it is truncated or not a roverswarm checkpoint") from error
+    if template.buffer is None:
+        return _restore(template, flat)
+    capacity = jax.tree.leaves(template.buffer.data)[0].shape[1]
     if not any(k.startswith("buffer/") for k in flat):  # a finished run's checkpoint: no replay kept
         flat.update(_flatten(serialization.to_state_dict(template.buffer), "buffer/"))
     for key, x in flat.items():
@@ -113,8 +184,14 @@ INFER_METRICS = ("infer_loss", "infer_error")
 against the other agents' current actions on the sampled observations."""
 
 
+PPO_METRICS = ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction")
+"""Per-update metrics of --algo mappo/ippo (means over the chunk's updates)."""
+
+
 def learner_metrics(config: TrainConfig) -> tuple[str, ...]:
     """The per-update metrics ``config``'s run logs."""
+    if config.learner.algo in ON_POLICY:
+        return PPO_METRICS
     return LEARNER_METRICS + (INFER_METRICS if config.learner.infer_policies else ())
 
 
@@ -235,13 +312,14 @@ class Run:
         return read_metrics(self.folder / METRICS) if (self.folder / METRICS).exists() else []
 
     @functools.cached_property
-    def learner(self) -> LearnerState:
+    def learner(self) -> LearnerState | PPOState:
         """Every seed's networks [S, ...] from the checkpoint (read once)."""
-        config = self.config
+        config, sizes = self.config, (self.params.num_rovers, observation_size(self.params))
         keys = jax.random.split(jax.random.PRNGKey(0), config.seeds)
-        template = jax.vmap(
-            lambda k: init_learner(k, config.learner, self.params.num_rovers, observation_size(self.params))
-        )(keys)
+        if config.learner.algo in ON_POLICY:
+            template = jax.vmap(lambda k: init_ppo(k, config, *sizes))(keys)
+        else:
+            template = jax.vmap(lambda k: init_learner(k, config.learner, *sizes))(keys)
         try:
             with np.load(self.folder / CHECKPOINT, allow_pickle=False) as data:
                 flat = {k: data[k] for k in data.files if k.startswith("learner/")}
@@ -263,17 +341,9 @@ class Run:
 
     def _policy(self, index: int, actor, name: str, sub_policy: int | None = None, **kwargs) -> Policy:
         """Seed ``index``'s policy of ``actor`` (on that seed's observation normaliser)."""
-        norm = self.learner.obs_norm
+        norm = None if self.config.learner.algo in ON_POLICY else self.learner.obs_norm
         norm = None if norm is None else jax.tree.map(lambda x: x[index], norm)
-        return trained_policy(
-            self.config.learner,
-            actor,
-            name,
-            sub_policy,
-            obs_norm=norm,
-            nearest_first=self.config.nearest_first,
-            **kwargs,
-        )
+        return trained_policy(self.config, actor, name, sub_policy, obs_norm=norm, **kwargs)
 
     def policies(self, sub_policies: SubPolicies = "random", seed: int = 0, partners: Partners = "own") -> list[Policy]:
         """Every seed's trained policy; with ensembles, a random sub-policy per agent and episode
@@ -288,9 +358,12 @@ class Run:
             f"--partners other-seeds needs a run trained with --seeds >= 2, this one has {config.seeds}",
         )
         require(
-            partners == "own" or not (config.learner.share_parameters or config.learner.normalize_obs),
+            partners == "own"
+            or not (
+                config.learner.share_parameters or config.learner.normalize_obs or config.learner.algo in ON_POLICY
+            ),
             "--partners other-seeds needs one network and no observation normaliser per agent: this "
-            "run has --share-parameters or --normalize-obs",
+            "run has --share-parameters, --normalize-obs or a shared PPO actor",
         )
         num_agents = self.params.num_rovers
         policies = []

@@ -9,6 +9,9 @@ the replay holds ``warmup`` transitions). A *chunk* is ``log_every / E`` iterati
 ``lax.scan``: one jitted call per 1000 episodes. The Python loop around the chunks only logs,
 checkpoints and draws progress. The number of updates per environment step is the same
 whatever E is: one update of every agent per ``update_every`` environment steps.
+
+With ``--algo mappo`` or ``ippo`` a chunk is :func:`roverswarm.onpolicy.run_chunk` instead;
+the host loop of :func:`train` (metrics, checkpoints, resume, signals) is the same.
 """
 
 from __future__ import annotations
@@ -25,12 +28,13 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from tensorboardX import SummaryWriter
 
-from roverswarm.algos.learner import LearnerState, act, init_learner, observe_batch
+from roverswarm import onpolicy
+from roverswarm.algos.learner import ON_POLICY, LearnerState, act, init_learner, observe_batch
 from roverswarm.algos.maddpg import inference_error, update
+from roverswarm.algos.ppo import PPOState
 from roverswarm.buffers import make_buffer
 from roverswarm.buffers.base import (
     Buffer,
@@ -50,6 +54,8 @@ from roverswarm.runs import (
     CHECKPOINT,
     CONFIG,
     METRICS,
+    Runner,
+    folder_lock,
     load_checkpoint,
     metric_rows,
     plot_learning_curve,
@@ -61,17 +67,6 @@ from roverswarm.runs import (
 
 
 # ----------------------------------------------------------------------------- jitted core
-
-
-@struct.dataclass
-class Runner:
-    """Everything the training carries from chunk to chunk (leading [S] where per seed)."""
-
-    learner: LearnerState  # [S, N, ...]
-    buffer: BufferState  # [S, C, ...]
-    key: jax.Array  # [S] PRNG keys
-    episodes: jax.Array  # [] int32, episodes per seed so far (shared by all seeds)
-    updates: jax.Array  # [] int32, updates of every agent per seed so far (shared)
 
 
 def example_transition(config: TrainConfig, params: EnvParams) -> Transition:
@@ -249,7 +244,7 @@ class Result:
 
     config: TrainConfig
     metrics: list[dict[str, float]]
-    learner: LearnerState  # [S, N, ...]
+    learner: LearnerState | PPOState  # [S, ...]
     out: Path | None
 
 
@@ -301,11 +296,29 @@ def train(
     )
     if config.mission is not None:  # stored absolute, so resume and evaluate work from any folder
         config = dataclasses.replace(config, mission=str(Path(config.mission).resolve()))
-    buffer = run_buffer(config, params)
-    runner = init_runner(config, params, buffer)
+    if out is None:
+        return _train(config, params, None, resume, progress, on_chunk)
+    with folder_lock(Path(out)):  # one writer per run folder
+        return _train(config, params, Path(out), resume, progress, on_chunk)
+
+
+def _train(
+    config: TrainConfig,
+    params: EnvParams,
+    out: Path | None,
+    resume: bool,
+    progress: bool,
+    on_chunk: Callable[[int], None] | None,
+) -> Result:
+    if config.learner.algo in ON_POLICY:
+        runner = onpolicy.init_runner(config, params)
+        chunk_fn = partial(onpolicy.run_chunk, config, params)
+    else:
+        buffer = run_buffer(config, params)
+        runner = init_runner(config, params, buffer)
+        chunk_fn = partial(run_chunk, config, params, buffer)
     rows: list[dict[str, float]] = []
     if out is not None:
-        out = Path(out)
         checkpoint = out / CHECKPOINT
         if resume:
             require(
@@ -353,15 +366,12 @@ def train(
             )
             for chunk in range(first, chunks):
                 start = time.perf_counter()
-                runner, metrics = run_chunk(config, params, buffer, runner)
+                runner, metrics = chunk_fn(runner)
                 metrics = jax.device_get(metrics)
                 seconds = time.perf_counter() - start
                 episodes = (chunk + 1) * config.log_every
                 new_rows = metric_rows(config, metrics, episodes, seconds)
-                finite = all(
-                    math.isfinite(r[k]) for r in new_rows for k in ("episode_reward", "critic_loss", "actor_loss")
-                )
-                if not finite:
+                if not all(math.isfinite(v) for r in new_rows for v in r.values()):
                     kept = (
                         f"the last good checkpoint in '{out}' is kept"
                         if out is not None and (out / CHECKPOINT).exists()

@@ -22,8 +22,10 @@ from roverswarm.algos.normalize import ObsNorm, init_obs_norm, normalize, update
 from roverswarm.buffers.base import Transition
 from roverswarm.env.mars import ACTION_SIZE, other_rovers
 
-Algo = Literal["maddpg", "ddpg"]
-ALGOS: tuple[str, ...] = ("maddpg", "ddpg")
+Algo = Literal["maddpg", "ddpg", "mappo", "ippo"]
+ALGOS: tuple[str, ...] = ("maddpg", "ddpg", "mappo", "ippo")
+ON_POLICY: tuple[str, ...] = ("mappo", "ippo")
+"""The on-policy learners (:mod:`roverswarm.algos.ppo`); the others learn from a replay."""
 
 
 @dataclass(frozen=True)
@@ -33,7 +35,9 @@ class AlgoConfig:
     ``roverswarm.config.REFERENCE``)."""
 
     algo: Algo = "maddpg"
-    """`maddpg`: centralised critics Q_i(x, a_1..a_N); `ddpg`: local critics Q_i(o_i, a_i)."""
+    """`maddpg`: centralised critics Q_i(x, a_1..a_N); `ddpg`: local critics Q_i(o_i, a_i);
+    `mappo` / `ippo`: PPO with one shared actor and a centralised / local value (start from
+    --preset mappo or ippo)."""
     actor_lr: float = 1e-3
     """Adam learning rate of the actors."""
     critic_lr: float = 1e-3

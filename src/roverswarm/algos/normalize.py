@@ -26,20 +26,33 @@ def init_obs_norm(obs_size: int) -> ObsNorm:
     return ObsNorm(mean=jnp.zeros(obs_size), var=jnp.ones(obs_size), count=jnp.zeros(()))
 
 
-def update_obs_norm(norm: ObsNorm, obs: jax.Array) -> ObsNorm:
-    """``norm`` with observations [..., O] folded in (Chan et al.'s parallel update of mean and variance)."""
+def update_obs_norm(norm: ObsNorm, obs: jax.Array, mask: jax.Array | None = None) -> ObsNorm:
+    """``norm`` with the rows of ``obs`` [..., O] folded in, only those where ``mask`` [...]
+    is 1 if given (Chan et al.'s parallel update of mean and variance)."""
     flat = obs.reshape(-1, obs.shape[-1])
-    n = jnp.asarray(flat.shape[0], jnp.float32)
-    mean, var = flat.mean(axis=0), flat.var(axis=0)
+    if mask is None:
+        n = jnp.asarray(flat.shape[0], jnp.float32)
+        mean, var = flat.mean(axis=0), flat.var(axis=0)
+    else:
+        weight = mask.reshape(-1, 1).astype(flat.dtype)
+        n = jnp.sum(weight)
+        mean = jnp.sum(flat * weight, axis=0) / jnp.maximum(n, 1.0)
+        var = jnp.sum(jnp.square(flat - mean) * weight, axis=0) / jnp.maximum(n, 1.0)
     total = norm.count + n
+    safe_total = jnp.maximum(total, 1.0)  # nothing seen yet and nothing new: keep the statistics
     delta = mean - norm.mean
-    new_mean = norm.mean + delta * n / total
-    m2 = norm.var * norm.count + var * n + jnp.square(delta) * norm.count * n / total
-    return ObsNorm(mean=new_mean, var=m2 / total, count=total)
+    new_mean = norm.mean + delta * n / safe_total
+    m2 = norm.var * norm.count + var * n + jnp.square(delta) * norm.count * n / safe_total
+    return ObsNorm(mean=new_mean, var=jnp.where(total > 0, m2 / safe_total, norm.var), count=total)
+
+
+def std(norm: ObsNorm) -> jax.Array:
+    """The standard deviation [O] that standardises (variance plus 1e-8)."""
+    return jnp.sqrt(norm.var + 1e-8)
 
 
 def normalize(norm: ObsNorm | None, obs: jax.Array) -> jax.Array:
     """Observations [..., O] standardised by ``norm`` and clipped to +-OBS_CLIP (unchanged if None)."""
     if norm is None:
         return obs
-    return jnp.clip((obs - norm.mean) / jnp.sqrt(norm.var + 1e-8), -OBS_CLIP, OBS_CLIP)
+    return jnp.clip((obs - norm.mean) / std(norm), -OBS_CLIP, OBS_CLIP)

@@ -26,6 +26,8 @@ every POI has been observed.
 
 from __future__ import annotations
 
+import dataclasses
+
 from typing import Any
 
 import jax
@@ -94,8 +96,23 @@ def observation_size(params: EnvParams) -> int:
     return 4 + 2 * params.num_pois + 2 * params.num_traps + 2 * (params.num_rovers - 1)
 
 
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
 def validate_params(params: EnvParams) -> EnvParams:
     """Check user-settable values; raise :class:`UserError` naming the bad field. Returns params."""
+    for f in dataclasses.fields(params):  # numbers the program can represent, whatever the field
+        value = getattr(params, f.name)
+        if isinstance(value, bool) or value is None:
+            continue
+        if not f.metadata.get("pytree_node", True):  # static sizes: Python ints, used as int32 counts
+            require(abs(value) < 2**31, f"{f.name} must be below 2^31, got {value}")
+            continue
+        x = np.asarray(value, dtype=float)
+        require(
+            bool(np.all(np.abs(x) <= _FLOAT32_MAX)),
+            f"{f.name} must be a finite number representable as float32 (|x| <= {_FLOAT32_MAX:.3g}), got {value}",
+        )
     require(params.num_rovers >= 1, f"num_rovers must be >= 1, got {params.num_rovers}")
     for name in ("num_pois", "num_traps"):
         value = getattr(params, name)

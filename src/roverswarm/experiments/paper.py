@@ -33,7 +33,7 @@ from scipy import stats
 from roverswarm.env.scenarios import get_scenario
 from roverswarm.experiments.grid import GridRun, ReproduceConfig, run_grid
 from roverswarm.config import REFERENCE, TrainConfig, config_to_json
-from roverswarm.runs import METRICS, read_metrics
+from roverswarm.runs import METRICS, folder_lock, read_metrics
 
 PAPER_TABLE1: dict[int, tuple[float, float]] = {2: (1.42, 2.26), 3: (3.08, 2.50), 4: (4.71, 2.69), 5: (8.78, 1.79)}
 """The paper's Table I: N -> (% change in episode reward, % change in training time)."""
@@ -328,7 +328,13 @@ def reproduce(config: ReproduceConfig, base: TrainConfig = REFERENCE, live: bool
     """Run (or finish) the grid, then write table1.md/.csv, fig8.png, fig9.png and report.md.
 
     ``base`` holds the training settings of every run (default: the paper's); the grid sets
-    its scenario, algorithm, replay, episodes, seeds and seed."""
+    its scenario, algorithm, replay, episodes, seeds and seed. One writer at a time: the
+    folder is locked while the grid runs."""
+    with folder_lock(Path(config.out)):
+        return _reproduce(config, base, live)
+
+
+def _reproduce(config: ReproduceConfig, base: TrainConfig, live: bool) -> Path:
     start = time.perf_counter()
     runs = run_grid(config, base, live=live)
     results = [load(run) for run in runs]

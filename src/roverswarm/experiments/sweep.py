@@ -12,14 +12,17 @@ with underscores)::
       default: {}
       shared: {share_parameters: true}
       shared-td3: {share_parameters: true, twin_critics: true, target_noise: 0.2, actor_delay: 2}
+      mappo: {preset: mappo}      # a setting may start from another preset
 
 Every (scenario, setting) trains in ``OUT/runs/<scenario>/<setting>`` (seeds vmapped; a
 finished run is kept, an interrupted one resumes), then every seed's policy is evaluated
 deterministically on the same 1000 episodes as the random and oracle policies
 (:func:`roverswarm.evaluate.evaluate_run`, kept in the run folder as ``evaluation.csv``).
 ``OUT/sweep.csv`` and ``OUT/sweep.md`` get one row per run: every seed's normalised score,
-their minimum and mean, POIs observed, collisions and trap contacts beside the oracle's, and
-minutes of training.
+their minimum and mean, POIs observed, collisions and trap contacts beside the oracle's, the
+random and oracle rewards the score is measured against, and minutes of training.
+``OUT/sweep.png`` plots every seed's score per scenario and setting (with ``paper-2`` ...
+``paper-8`` as the scenarios: the score against the number of rovers).
 """
 
 from __future__ import annotations
@@ -39,7 +42,7 @@ from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
 from roverswarm.experiments.grid import GridRun, Summary, run_local, status
 from roverswarm.config import PRESETS, validate, with_options
-from roverswarm.runs import METRICS, read_metrics, write_csv
+from roverswarm.runs import METRICS, folder_lock, read_metrics, write_csv
 
 EVALUATION = "evaluation.csv"
 
@@ -79,9 +82,7 @@ def load_sweep(path: Path, out: Path) -> list[GridRun]:
         require(name in SCENARIOS, f"sweep file '{path}': unknown scenario '{name}'; known: {', '.join(SCENARIOS)}")
     settings = spec.get("settings")
     require(isinstance(settings, dict) and settings, f"sweep file '{path}': settings must map names to options")
-    base = with_options(
-        PRESETS[preset], {k: spec[k] for k in ("seeds", "episodes") if k in spec}, f"sweep file '{path}'"
-    )
+    common = {k: spec[k] for k in ("seeds", "episodes") if k in spec}
     runs = []
     for scenario in scenarios:
         for name, options in settings.items():
@@ -89,7 +90,11 @@ def load_sweep(path: Path, out: Path) -> list[GridRun]:
                 isinstance(options, dict | None),
                 f"sweep file '{path}': setting '{name}' must map option names to values",
             )
-            config = with_options(dataclasses.replace(base, scenario=scenario), options or {}, f"setting '{name}'")
+            options = dict(options or {})
+            start = options.pop("preset", preset)
+            require(start in PRESETS, f"setting '{name}': preset must be one of {', '.join(PRESETS)}, got '{start}'")
+            base = with_options(PRESETS[start], common, f"sweep file '{path}'")
+            config = with_options(dataclasses.replace(base, scenario=scenario), options, f"setting '{name}'")
             validate(config)
             runs.append(GridRun(scenario, str(name), config, Path(out) / "runs" / scenario / str(name)))
     return runs
@@ -130,8 +135,37 @@ def table_row(run: GridRun, rows: list[dict[str, object]]) -> dict[str, object]:
         "collisions": mean("collisions"),
         "trap_contacts": mean("trap_contacts"),
         "oracle_trap_contacts": float(by_name["oracle"]["trap_contacts"]),
+        "random_reward": float(by_name["random"]["episode_reward"]),
+        "oracle_reward": float(by_name["oracle"]["episode_reward"]),
         "train_minutes": minutes,
     }
+
+
+def figure(rows: list[dict[str, object]], path: Path) -> None:
+    """Every seed's score (dots) and their mean (line) per scenario, one colour per setting,
+    beside random (0) and the oracle (1)."""
+    from matplotlib.figure import Figure
+
+    scenarios = list(dict.fromkeys(str(r["scenario"]) for r in rows))
+    fig = Figure(figsize=(1.2 * len(scenarios) + 4, 4.5), dpi=100)
+    ax = fig.add_subplot()
+    for setting in dict.fromkeys(str(r["setting"]) for r in rows):
+        mine = [r for r in rows if r["setting"] == setting]
+        x = [scenarios.index(str(r["scenario"])) for r in mine]
+        scores = [[float(v) for v in str(r["scores"]).split(" / ")] for r in mine]
+        (line,) = ax.plot(x, [np.mean(v) for v in scores], marker="o", label=setting)
+        for xi, v in zip(x, scores):
+            ax.scatter([xi] * len(v), v, s=12, color=line.get_color(), alpha=0.5)
+    for level, name in ((1.0, "oracle"), (0.0, "random")):
+        ax.axhline(level, color="grey", linestyle="--", linewidth=1)
+        ax.annotate(name, (len(scenarios) - 0.5, level), fontsize=8, color="grey", va="bottom", ha="right")
+    ax.set_xticks(range(len(scenarios)), scenarios)
+    ax.set_xlim(-0.5, len(scenarios) - 0.5)
+    ax.set_ylabel("normalised score (every seed; line: mean)")
+    ax.set_title("deterministic evaluation, 1000 episodes per policy")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
 
 
 def markdown(rows: list[dict[str, object]]) -> str:
@@ -160,10 +194,12 @@ def sweep(config: SweepConfig, live: bool = True) -> Path:
             table.append(table_row(run, evaluation(run, config.eval_episodes)))
             write_csv(config.out / "sweep.csv", table)
             (config.out / "sweep.md").write_text(markdown(table))
+            figure(table, config.out / "sweep.png")
 
-    if live:
-        with Live(summary, console=Console(), refresh_per_second=1):
+    with folder_lock(config.out):  # one writer at a time
+        if live:
+            with Live(summary, console=Console(), refresh_per_second=1):
+                execute()
+        else:
             execute()
-    else:
-        execute()
     return config.out / "sweep.md"

@@ -1,0 +1,200 @@
+"""On-policy training (``--algo mappo`` or ``ippo``): rollouts, GAE and PPO updates of every
+seed in one jitted chunk; :mod:`roverswarm.algos.ppo` holds the networks, the loss and the
+equations, :func:`roverswarm.trainer.train` the host loop both kinds of learner share.
+
+Shape legend: S seeds, E parallel environments per seed, T steps per episode, N rovers,
+O observation size, B = T * E * N samples per iteration.
+
+One *iteration* (per seed): E fresh episodes of T steps with the stochastic policy, GAE per
+rover, then ``epochs`` passes over the B samples in ``minibatches`` shuffled minibatches. A
+*chunk* is ``log_every / E`` iterations in one ``lax.scan`` with the seeds vmapped.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from roverswarm.algos.normalize import ObsNorm, std, update_obs_norm
+from roverswarm.algos.ppo import (
+    Batch,
+    PPOState,
+    actor_inputs,
+    critic_inputs,
+    gae,
+    gaussian_log_prob,
+    init_ppo,
+    networks,
+    update_minibatch,
+    updates_per_iteration,
+)
+from roverswarm.config import TrainConfig
+from roverswarm.env.mars import EnvParams, observation_size, reset, step_env
+from roverswarm.rollout import contact_counts
+from roverswarm.runs import Runner
+
+
+@struct.dataclass
+class Trajectory:
+    """E episodes of T steps of one seed: leading [T, E]."""
+
+    obs: jax.Array  # [T, E, N, O]
+    actions: jax.Array  # [T, E, N, A] unclipped samples
+    log_probs: jax.Array  # [T, E, N]
+    rewards: jax.Array  # [T, E, N], 0 after a termination
+    next_obs: jax.Array  # [T, E, N, O]
+    terminated: jax.Array  # [T, E] bool
+    truncated: jax.Array  # [T, E] bool
+    mask: jax.Array  # [T, E] float, 1 until (and including) the terminating step
+
+
+def init_runner(config: TrainConfig, params: EnvParams) -> Runner:
+    """Fresh networks for every seed (keys derived from (seed, s) as for MADDPG); no replay."""
+    keys = jax.vmap(lambda s: jax.random.fold_in(jax.random.PRNGKey(config.seed), s))(jnp.arange(config.seeds))
+    init_keys, run_keys = jnp.split(jax.vmap(jax.random.split)(keys), 2, axis=1)
+    learner = jax.vmap(lambda k: init_ppo(k, config, params.num_rovers, observation_size(params)))(init_keys[:, 0])
+    counter = lambda: jnp.zeros((), jnp.int32)  # noqa: E731 (separate arrays: the runner is donated)
+    return Runner(learner=learner, buffer=None, key=run_keys[:, 0], episodes=counter(), updates=counter())
+
+
+def _where_env(done: jax.Array, old, new):
+    """Per environment [E]: ``old`` where ``done``, else ``new`` (pytrees with leading [E])."""
+    return jax.tree.map(lambda o, n: jnp.where(done.reshape(-1, *([1] * (n.ndim - 1))), o, n), old, new)
+
+
+def collect(config: TrainConfig, params: EnvParams, actor, key: jax.Array) -> tuple[Trajectory, dict[str, jax.Array]]:
+    """E fresh episodes of T steps of one seed with the stochastic policy ``actor``.
+
+    After a termination (mission mode) an episode stands still and its steps are masked out.
+    Returns the trajectory [T, E, ...] and per-episode stats [E], as the MADDPG trainer's:
+    ``episode_reward``, ``agent_rewards`` [E, N], ``collisions``, ``trap_contacts`` and
+    ``coverage_distance`` (at the last step).
+    """
+    actor_net = networks(config.learner, config.ppo)[0]
+    k_reset, k_steps = jax.random.split(key)
+    obs, env_state = jax.vmap(reset, in_axes=(0, None))(jax.random.split(k_reset, config.num_envs), params)
+
+    def body(carry, step_key):
+        obs, env_state, done = carry
+        mean, log_std = actor_net.apply(actor, actor_inputs(obs))
+        actions = mean + jnp.exp(log_std) * jax.random.normal(step_key, mean.shape)
+        next_obs, next_state, rewards, terminated, truncated, info = jax.vmap(step_env, in_axes=(0, 0, None))(
+            env_state, jnp.clip(actions, -1.0, 1.0), params
+        )
+        live = ~done
+        step = Trajectory(
+            obs=obs,
+            actions=actions,
+            log_probs=gaussian_log_prob(actions, mean, log_std),
+            rewards=rewards * live[:, None],
+            next_obs=next_obs,
+            terminated=terminated & live,
+            truncated=truncated & live,
+            mask=live.astype(jnp.float32),
+        )
+        stats = {k: v * live for k, v in contact_counts(info).items()}
+        stats["coverage_distance"] = info["coverage_distance"]
+        carry = (_where_env(done, obs, next_obs), _where_env(done, env_state, next_state), done | terminated)
+        return carry, (step, stats)
+
+    done = jnp.zeros((config.num_envs,), bool)
+    _, (traj, stats) = jax.lax.scan(body, (obs, env_state, done), jax.random.split(k_steps, params.max_steps))
+    episode = {
+        "episode_reward": traj.rewards.sum(axis=(0, 2)),
+        "agent_rewards": traj.rewards.sum(axis=0),
+        "collisions": stats["collisions"].sum(axis=0),
+        "trap_contacts": stats["trap_contacts"].sum(axis=0),
+        "coverage_distance": stats["coverage_distance"][-1],
+    }
+    return traj, episode
+
+
+def values_of(config: TrainConfig, critic, returns: ObsNorm, obs: jax.Array) -> jax.Array:
+    """Every rover's value [..., N] of observations [..., N, O] (de-standardised with --value-norm)."""
+    value = networks(config.learner, config.ppo)[1].apply(critic, critic_inputs(config.learner.algo, obs))[..., 0]
+    if config.ppo.value_norm:
+        return returns.mean[0] + std(returns)[0] * value
+    return value
+
+
+def make_batch(config: TrainConfig, state: PPOState, traj: Trajectory) -> tuple[Batch, ObsNorm]:
+    """GAE per rover on ``traj`` and the flat [B] batch of the update; with --value-norm the
+    value-target statistics are updated first and targets and values standardised by them.
+    Returns the batch and the (updated) value-target statistics."""
+    values = values_of(config, state.critic, state.returns, traj.obs)  # [T, E, N]
+    next_values = values_of(config, state.critic, state.returns, traj.next_obs)
+    per_rover = lambda x: jnp.broadcast_to(x[..., None], values.shape)  # noqa: E731
+    advantages, targets = gae(
+        traj.rewards,
+        values,
+        next_values,
+        per_rover(traj.terminated),
+        config.learner.gamma,
+        config.ppo.gae_lambda,
+        per_rover(traj.truncated),
+    )
+    mask = per_rover(traj.mask)
+    returns = state.returns
+    if config.ppo.value_norm:
+        returns = update_obs_norm(returns, targets[..., None], mask)
+        targets = (targets - returns.mean[0]) / std(returns)[0]
+        values = (values - returns.mean[0]) / std(returns)[0]
+    flat = lambda x: x.reshape(-1, *x.shape[3:])  # noqa: E731
+    batch = Batch(
+        actor_inputs=flat(actor_inputs(traj.obs)),
+        critic_inputs=flat(critic_inputs(config.learner.algo, traj.obs)),
+        actions=flat(traj.actions),
+        log_probs=flat(traj.log_probs),
+        advantages=flat(advantages),
+        targets=flat(targets),
+        values=flat(values),
+        mask=flat(mask),
+    )
+    return batch, returns
+
+
+def iteration(config: TrainConfig, params: EnvParams, state: PPOState, key: jax.Array):
+    """One PPO iteration of one seed: E episodes, GAE, ``epochs`` x ``minibatches`` updates.
+
+    Returns the state and ``(episode stats [E], learner info (means over the updates))``."""
+    k_collect, k_shuffle = jax.random.split(key)
+    traj, episode = collect(config, params, state.actor, k_collect)
+    batch, returns = make_batch(config, state, traj)
+    state = state.replace(returns=returns)
+    size = batch.mask.shape[0]
+
+    def epoch(state, key):
+        order = jax.random.permutation(key, size)
+        minibatches = jax.tree.map(lambda x: x[order].reshape(config.ppo.minibatches, -1, *x.shape[1:]), batch)
+        return jax.lax.scan(partial(update_minibatch, config), state, minibatches)
+
+    state, info = jax.lax.scan(epoch, state, jax.random.split(k_shuffle, config.ppo.epochs))
+    return state, (episode, jax.tree.map(jnp.mean, info))
+
+
+@partial(jax.jit, static_argnums=(0,), donate_argnums=(2,))
+def run_chunk(config: TrainConfig, params: EnvParams, runner: Runner):
+    """``log_every`` episodes per seed (``log_every / num_envs`` iterations, seeds vmapped);
+    returns the runner and per-seed chunk metrics [S]: the episode stats and
+    :data:`~roverswarm.runs.PPO_METRICS`
+    (means over the chunk's episodes and updates)."""
+    iterations = config.log_every // config.num_envs
+
+    def one_seed(state: PPOState, key: jax.Array):
+        keys = jax.random.split(key, iterations + 1)
+        state, (episode, info) = jax.lax.scan(partial(iteration, config, params), state, keys[1:])
+        metrics = {k: v.mean(axis=(0, 1)) for k, v in episode.items()}  # [I, E, ...]
+        metrics.update({k: v.mean(axis=0) for k, v in info.items()})  # [I]
+        return state, metrics, keys[0]
+
+    learner, metrics, keys = jax.vmap(one_seed)(runner.learner, runner.key)
+    runner = runner.replace(
+        learner=learner,
+        key=keys,
+        episodes=runner.episodes + config.log_every,
+        updates=runner.updates + iterations * updates_per_iteration(config.ppo),
+    )
+    return runner, metrics
