@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import csv
 import dataclasses
+import errno
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -16,10 +19,10 @@ import numpy as np
 import pytest
 
 from roverswarm.cli import main
-from roverswarm.errors import RunStopped
+from roverswarm.errors import RunStopped, UserError
 from roverswarm.evaluate import evaluate_run
 from roverswarm.config import REFERENCE, TrainConfig, config_from_json, with_options
-from roverswarm.runs import CHECKPOINT, LOCK, Run, read_metrics
+from roverswarm.runs import CHECKPOINT, LOCK, METRICS, Run, atomic_write, read_metrics
 from roverswarm.trainer import train
 
 TIMELESS = lambda rows: [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rows]  # noqa: E731
@@ -245,6 +248,48 @@ def test_a_folder_being_written_is_refused_and_a_stale_lock_is_taken_over(tiny_c
     # a failed command leaves no empty folder behind
     assert main(["train", "--resume", str(tmp_path / "typo")]) == 2
     assert not (tmp_path / "typo").exists()
+
+
+def test_faults_end_in_one_line_and_exit_2_and_leave_the_run_as_it_was(unbroken, tiny_config, tmp_path, capsys):
+    def refused(argv: list[str], message: str) -> None:
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1, err
+
+    run = tmp_path / "run"
+    shutil.copytree(unbroken.out, run)
+    (tmp_path / "file").write_text("not a folder")
+    refused(["train", *cli_args(tiny_config), "--out", str(tmp_path / "file")], "is a file")
+    metrics = (run / METRICS).read_text()
+    (run / METRICS).write_text("seed,episodes,episode_reward\n0,100,oops\n")
+    refused(["train", "--resume", str(run)], "metrics.csv' is damaged")
+    (run / METRICS).unlink()
+    refused(["train", "--resume", str(run)], "metrics.csv' is missing or lacks rows of the 400 episodes")
+    (run / METRICS).write_text(metrics)
+    assert main(["train", "--resume", str(run)]) == 0  # restored: nothing left to do
+
+
+def test_a_full_disk_keeps_the_previous_file_and_leaves_no_temporary_one(tiny_config, tmp_path, capsys, monkeypatch):
+    path = tmp_path / "checkpoint.npz"
+    path.write_bytes(b"the previous checkpoint")
+
+    def full(f):
+        f.write(b"half")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with pytest.raises(UserError, match="No space left on device\\); the previous version is kept"):
+        atomic_write(path, full, binary=True)
+    assert path.read_bytes() == b"the previous checkpoint" and not list(tmp_path.glob("*.tmp"))
+
+    def no_space(writer):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with monkeypatch.context() as patch:  # the first metrics.csv of a new run cannot be written
+        patch.setattr(csv.DictWriter, "writeheader", no_space)
+        assert main(["train", *cli_args(tiny_config), "--out", str(tmp_path / "new")]) == 2
+    err = capsys.readouterr().err
+    assert "No space left on device); nothing was written" in err and err.count("\n") == 1
+    assert not list((tmp_path / "new").glob("*.tmp"))
 
 
 def test_evaluate_reports_policies_beside_random_and_oracle(unbroken, capsys):

@@ -198,6 +198,10 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as error:
         print(f"roverswarm: error: {error}", file=sys.stderr)
         return 2
+    except OSError as error:  # a full disk, a read-only or vanished folder: what the machine refused, in one line
+        where = f" '{error.filename}'" if error.filename else ""
+        print(f"roverswarm: error: cannot read or write{where}: {error.strerror or error}", file=sys.stderr)
+        return 2
     except RunStopped as stopped:
         print(f"roverswarm: stopped: {stopped}", file=sys.stderr)
         return 1

@@ -16,7 +16,7 @@ import os
 import socket
 import zipfile
 from pathlib import Path
-from typing import Iterator, Literal
+from typing import IO, Callable, Iterator, Literal
 
 import jax
 import jax.numpy as jnp
@@ -57,13 +57,15 @@ def folder_lock(folder: Path) -> Iterator[None]:
     with the first's. A lock whose process is gone (a killed run, on this host) is taken over.
     A folder created here and left empty is removed again."""
     created = not folder.exists()
-    folder.mkdir(parents=True, exist_ok=True)
     path, me = folder / LOCK, f"{os.getpid()} {socket.gethostname()}"
     while True:
         try:
+            folder.mkdir(parents=True, exist_ok=True)
             fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
             break
         except FileExistsError:
+            if not folder.is_dir():
+                raise UserError(f"output folder '{folder}' is a file (or lies inside one), not a folder") from None
             owner = _lock_owner(path)
             if owner is not None:
                 raise UserError(
@@ -71,6 +73,8 @@ def folder_lock(folder: Path) -> Iterator[None]:
                     f"another --out, or delete '{path}' if that process is gone"
                 ) from None
             path.unlink(missing_ok=True)  # stale: its writer is gone
+        except OSError as error:  # read-only file system, no permission, ...
+            raise UserError(f"output folder '{folder}' cannot be written ({error.strerror or error})") from error
     with os.fdopen(fd, "w") as f:
         f.write(me)
     try:
@@ -149,12 +153,25 @@ def save_checkpoint(path: Path, runner, replay: bool = True) -> None:
     arrays = _flatten(serialization.to_state_dict(runner))
     if not replay:
         arrays = {k: v for k, v in arrays.items() if not k.startswith("buffer/")}
+    atomic_write(path, lambda f: np.savez(f, **arrays), binary=True)
+
+
+def atomic_write(path: Path, write: Callable[[IO], None], binary: bool = False) -> None:
+    """``write(file)`` into a temporary file beside ``path``, flushed to disk, then renamed over
+    ``path``: a reader sees the old file or the new one, never half of one. If writing fails
+    (a full disk, a read-only folder) the temporary file is removed, ``path`` is left as it
+    was, and :class:`UserError` says so."""
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        np.savez(f, **arrays)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb" if binary else "w", newline=None if binary else "") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError as error:
+        tmp.unlink(missing_ok=True)
+        kept = "the previous version is kept" if path.exists() else "nothing was written"
+        raise UserError(f"cannot write '{path}' ({error.strerror or error}); {kept}") from error
 
 
 def load_checkpoint(path: Path, template):
@@ -220,12 +237,13 @@ def metric_rows(
 
 def write_csv(path: Path, rows: list[dict]) -> None:
     """``rows`` (dicts with the same keys) as a CSV file, written atomically (temp file + rename)."""
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", newline="") as f:
+
+    def write(f) -> None:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    os.replace(tmp, path)
+
+    atomic_write(path, write)
 
 
 COUNT_COLUMNS = ("seed", "episodes")
@@ -233,11 +251,16 @@ COUNT_COLUMNS = ("seed", "episodes")
 
 
 def read_metrics(path: Path) -> list[dict[str, float]]:
-    """The rows of a ``metrics.csv``: ``seed`` and ``episodes`` as ints, the rest as floats."""
-    with open(path, newline="") as f:
-        return [
-            {k: int(float(v)) if k in COUNT_COLUMNS else float(v) for k, v in row.items()} for row in csv.DictReader(f)
-        ]
+    """The rows of a ``metrics.csv``: ``seed`` and ``episodes`` as ints, the rest as floats;
+    :class:`UserError` if the file is damaged."""
+    try:
+        with open(path, newline="") as f:
+            return [
+                {k: int(float(v)) if k in COUNT_COLUMNS else float(v) for k, v in row.items()}
+                for row in csv.DictReader(f)
+            ]
+    except (ValueError, TypeError, UnicodeDecodeError, csv.Error) as error:
+        raise UserError(f"'{path}' is damaged ({error}); it is not a roverswarm metrics file") from error
 
 
 def plot_learning_curve(rows: list[dict[str, float]], path: Path, title: str) -> None:

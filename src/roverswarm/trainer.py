@@ -55,6 +55,7 @@ from roverswarm.runs import (
     CONFIG,
     METRICS,
     Runner,
+    atomic_write,
     folder_lock,
     load_checkpoint,
     metric_rows,
@@ -334,13 +335,18 @@ def _train(
             runner = load_checkpoint(checkpoint, runner)
             done = int(runner.episodes)
             rows = [r for r in read_metrics(out / METRICS) if r["episodes"] <= done] if (out / METRICS).exists() else []
+            require(
+                len(rows) == done // config.log_every * config.seeds,
+                f"--resume: '{out / METRICS}' is missing or lacks rows of the {done} episodes in the checkpoint; "
+                "restore it (they cannot be rebuilt) or start a new run",
+            )
         else:
             require(
                 not checkpoint.exists(),
                 f"'{out}' already holds a run; continue it with --resume or choose another --out",
             )
             out.mkdir(parents=True, exist_ok=True)
-        (out / CONFIG).write_text(config_to_json(config))
+        atomic_write(out / CONFIG, lambda f: f.write(config_to_json(config)))
     writer = SummaryWriter(str(out / "tb")) if out is not None else None
 
     chunks = config.episodes // config.log_every
