@@ -14,7 +14,7 @@ import yaml
 
 from roverswarm.cli import main
 from roverswarm.env.mars import NEVER, EnvParams, reset, step_env
-from roverswarm.env.missions import load_mission, parse_mission
+from roverswarm.env.missions import MAX_BYTES, MAX_ENTRIES, load_mission, parse_mission
 from roverswarm.errors import UserError
 from roverswarm.rollout import EpisodeStats, MissionStats, Rollout, rollout
 from roverswarm.mission import load_policy, parse_failures, run_mission, stress_mission
@@ -65,7 +65,7 @@ def with_change(change) -> dict:
         (lambda d: d.update(rovers={"count": 2}), "rovers: give either 'start'"),
         (
             lambda d: d.update(rovers={"count": 0, "release_zone": {"low": [0, 0], "high": [1, 1]}}),
-            "rovers.count: must be an integer >= 1",
+            "rovers.count: must be an integer in [1, 1000]",
         ),
         (
             lambda d: d.update(rovers={"count": 2, "release_zone": {"low": [0, 0], "high": [0, 1]}}),
@@ -101,6 +101,29 @@ def test_a_poi_on_a_craters_rim_is_accepted_when_a_rover_can_observe_it_from_out
         parse_mission(with_change(lambda d: d["pois"][0].update(position=[0.0, 0.19])))
 
 
+def test_small_files_cannot_exhaust_memory_or_time(tmp_path):
+    # a YAML alias bomb: 9 levels of 9 aliases each would expand to 9^9 items
+    bomb = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
+        f"{chr(98 + i)}: &{chr(98 + i)} [{', '.join(['*' + chr(97 + i)] * 9)}]\n" for i in range(8)
+    )
+    (tmp_path / "bomb.yaml").write_text(bomb)
+    with pytest.raises(UserError, match=r"YAML aliases \(\*a\) are not allowed"):
+        load_mission(tmp_path / "bomb.yaml")
+    (tmp_path / "big.yaml").write_text("#" * (MAX_BYTES + 1))
+    with pytest.raises(UserError, match=f"at most {MAX_BYTES} are read"):
+        load_mission(tmp_path / "big.yaml")
+    many = with_change(lambda d: d.update(pois=[{"position": [0.0, 0.0]}] * (MAX_ENTRIES + 1)))
+    with pytest.raises(UserError, match=f"pois: at most {MAX_ENTRIES} entries, got {MAX_ENTRIES + 1}"):
+        parse_mission(many)
+    # the largest allowed list with a repeated name: the message names both entries
+    names = with_change(
+        lambda d: d.update(pois=[{"name": f"p{i}", "position": [0.0, 0.0]} for i in range(MAX_ENTRIES)])
+    )
+    names["pois"][-1]["name"] = "p0"
+    with pytest.raises(UserError, match=rf"pois\[{MAX_ENTRIES - 1}\]: the name 'p0' is already used by pois\[0\]"):
+        parse_mission(names)
+
+
 def test_a_mission_file_that_is_not_a_mapping_is_refused():
     with pytest.raises(UserError, match="mission file: expected a mapping"):
         parse_mission([1, 2])
@@ -114,10 +137,11 @@ def test_a_bad_mission_file_exits_2_with_one_line(tmp_path, capsys):
     assert err.count("\n") == 0 and "pois[1] position: (0.2, -3) is outside the map" in err
     path.write_text("pois: [unclosed")
     assert main(["mission", "run", str(path)]) == 2
-    assert "is not valid UTF-8 YAML" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "is not valid YAML: while parsing a flow sequence" in err and err.count("\n") == 1
     path.write_bytes(b"name: \xff\xfe")
     assert main(["mission", "run", str(path)]) == 2
-    assert "is not valid UTF-8 YAML" in capsys.readouterr().err
+    assert "is not valid UTF-8" in capsys.readouterr().err
     assert main(["mission", "run", str(tmp_path)]) == 2
     assert "is not a file" in capsys.readouterr().err
     assert main(["mission", "run", str(tmp_path / "missing.json")]) == 2
@@ -343,13 +367,25 @@ def test_train_on_a_mission_then_run_the_policy_and_refuse_a_mismatch(tiny_confi
     from roverswarm.config import TrainConfig
     from roverswarm.trainer import train
 
+    from roverswarm.runs import Run
+
     # the mission sets the layout, so the scenario stays at its default (as the command line requires)
-    config = dataclasses.replace(
-        tiny_config, scenario=TrainConfig().scenario, mission=str(EXAMPLES / "mission.yaml"), episodes=200, seeds=1
-    )
+    file = tmp_path / "mission.yaml"
+    original = (EXAMPLES / "mission.yaml").read_text()
+    file.write_text(original)
+    config = dataclasses.replace(tiny_config, scenario=TrainConfig().scenario, mission=str(file), episodes=200, seeds=1)
     train(config, out=tmp_path / "run")
     mission = load_mission(EXAMPLES / "mission.yaml")
+    # the run keeps the file's content: it loads and runs with the file gone ...
+    file.unlink()
+    assert Run(tmp_path / "run").config.mission_text == original
     policy = load_policy(str(tmp_path / "run"), mission)
+    # ... and a resume on an edited file is refused, on the original one accepted
+    file.write_text(original.replace("episode_length: 25", "episode_length: 30"))
+    with pytest.raises(UserError, match="mission file '.*mission.yaml' changed since this run was trained on it"):
+        train(Run(tmp_path / "run").config, out=tmp_path / "run", resume=True, progress=False)
+    file.write_text(original)
+    train(Run(tmp_path / "run").config, out=tmp_path / "run", resume=True, progress=False)
     data = rollout(policy, jax.random.PRNGKey(0), mission.params, 1)
     np.testing.assert_allclose(data.poi_pos[0], mission.params.fixed_pois)
     with pytest.raises(

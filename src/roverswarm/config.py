@@ -13,11 +13,13 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import tyro
+
 from roverswarm.algos.learner import ALGOS, ON_POLICY, AlgoConfig
 from roverswarm.algos.ppo import PPOConfig
 from roverswarm.buffers.base import ReplayConfig
 from roverswarm.env.mars import EnvParams
-from roverswarm.env.missions import load_mission
+from roverswarm.env.missions import load_mission, parse_mission_text
 from roverswarm.env.scenarios import get_scenario
 from roverswarm.errors import UserError, require
 
@@ -35,7 +37,10 @@ class TrainConfig:
     mission: str | None = None
     """Mission file (YAML/JSON) to train on instead of --scenario (give one of them): its
     POIs and traps fixed, rover starts drawn anywhere in the map, fixed-length episodes.
-    Training stores its absolute path; the file is read again on resume and evaluation."""
+    Training stores its absolute path and its content: evaluation and resume need not find the
+    file, and resume refuses a file that changed since."""
+    mission_text: tyro.conf.Suppress[str | None] = None
+    """The mission file's content, kept by training (not an option)."""
     nearest_first: bool = False
     """Each rover observes the POIs, traps and other rovers nearest first instead of in index
     order: the same view for every numbering of a layout."""
@@ -183,7 +188,12 @@ def validate(config: TrainConfig) -> EnvParams:
         f"--scenario {config.scenario} and --mission: the mission file sets the layout and the number "
         "of rovers; give one of them",
     )
-    params = get_scenario(config.scenario) if config.mission is None else load_mission(config.mission).training_params()
+    if config.mission is None:
+        params = get_scenario(config.scenario)
+    elif config.mission_text is None:
+        params = load_mission(config.mission).training_params()
+    else:
+        params = parse_mission_text(config.mission_text, config.mission).training_params()
     params = params.replace(nearest_first=config.nearest_first)
     learner, replay = config.learner, config.buffer
     require(learner.algo in ALGOS, f"--algo must be one of {', '.join(ALGOS)}, got '{learner.algo}'")

@@ -48,6 +48,7 @@ from roverswarm.buffers.base import (
 )
 from roverswarm.config import TrainConfig, config_from_json, config_to_json, fields_by_name, validate
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, reset, step_env
+from roverswarm.env.missions import read_mission_text
 from roverswarm.errors import RunStopped, require
 from roverswarm.rollout import contact_counts
 from roverswarm.runs import (
@@ -289,18 +290,33 @@ def train(
     same numbers as an unbroken run. Same config => identical metrics. ``on_chunk(episodes)``
     is called after every chunk (e.g. to draw a summary of many runs instead of the bar).
     """
+    if config.mission is not None:  # kept absolute and with its content: resume and evaluate need not find the file
+        config = _with_mission_text(config)
     params = validate(config)
     require(out is not None or not resume, "resume=True needs the run folder (--out) to resume")
     require(
         out is not None or config.episodes <= 10_000,
         "give --out for runs of more than 10000 episodes, so that they can be resumed",
     )
-    if config.mission is not None:  # stored absolute, so resume and evaluate work from any folder
-        config = dataclasses.replace(config, mission=str(Path(config.mission).resolve()))
     if out is None:
         return _train(config, params, None, resume, progress, on_chunk)
     with folder_lock(Path(out)):  # one writer per run folder
         return _train(config, params, Path(out), resume, progress, on_chunk)
+
+
+def _with_mission_text(config: TrainConfig) -> TrainConfig:
+    """``config`` with the mission file's absolute path and its content; :class:`UserError` if
+    the file changed since ``config`` kept its content (a run resumed on an edited file)."""
+    path = Path(config.mission).resolve()
+    text = config.mission_text
+    if text is None or path.exists():
+        current = read_mission_text(path)
+        require(
+            text is None or current == text,
+            f"mission file '{path}' changed since this run was trained on it; restore it, or train a new run",
+        )
+        text = current
+    return dataclasses.replace(config, mission=str(path), mission_text=text)
 
 
 def _train(

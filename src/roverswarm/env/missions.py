@@ -34,6 +34,10 @@ import yaml
 from roverswarm.env.mars import EnvParams, validate_params
 from roverswarm.errors import UserError, require
 
+MAX_BYTES = 1_000_000
+"""Largest mission file read (a mission of hundreds of POIs is a few tens of kB)."""
+MAX_ENTRIES = 1000
+"""Most POIs, traps or rovers in one mission."""
 _TOP_FIELDS = {"name", "map_size", "episode_length", "stop_when_complete", "rovers", "pois", "traps"}
 _DEFAULT_RADIUS = {"pois": 0.1, "traps": 0.1}
 
@@ -102,16 +106,16 @@ def _entries(data: dict, key: str, size: float) -> tuple[list[str], np.ndarray, 
     """Names, positions [K, 2] and radii [K] of the ``pois`` or ``traps`` list."""
     entries = data.get(key, [])
     require(isinstance(entries, list), f"{key}: expected a list, got {entries!r}")
-    names, positions, radii = [], [], []
+    require(len(entries) <= MAX_ENTRIES, f"{key}: at most {MAX_ENTRIES} entries, got {len(entries)}")
+    names, positions, radii, index = [], [], [], {}
     for i, entry in enumerate(entries):
         label = f"{key}[{i}]"
         _fields(entry, label, {"position"}, {"name", "radius"})
         name = _name(entry["name"], f"{label} name") if "name" in entry else f"{key[:-1]}-{i}"
-        require(
-            name not in names,
-            f"{label}: the name '{name}' is already used by {key}[{names.index(name) if name in names else 0}]",
-        )
+        if name in index:
+            raise UserError(f"{label}: the name '{name}' is already used by {key}[{index[name]}]")
         label += f" '{name}'" if "name" in entry else ""
+        index[name] = i
         names.append(name)
         positions.append(_point(entry["position"], f"{label} position", size))
         radii.append(_positive(entry.get("radius", _DEFAULT_RADIUS[key]), f"{label} radius"))
@@ -140,8 +144,8 @@ def _rovers(data: dict, size: float) -> tuple[int, np.ndarray | None, np.ndarray
         return len(points), np.array(points, np.float32), None
     count = rovers.get("count")
     require(
-        isinstance(count, int) and not isinstance(count, bool) and count >= 1,
-        f"rovers.count: must be an integer >= 1 with a release_zone, got {count!r}",
+        isinstance(count, int) and not isinstance(count, bool) and 1 <= count <= MAX_ENTRIES,
+        f"rovers.count: must be an integer in [1, {MAX_ENTRIES}] with a release_zone, got {count!r}",
     )
     zone = _fields(rovers["release_zone"], "rovers.release_zone", {"low", "high"}, set())
     low, high = (_point(zone[k], f"rovers.release_zone.{k}", size) for k in ("low", "high"))
@@ -234,15 +238,40 @@ def parse_mission(data: Any, name: str = "mission") -> Mission:
     return Mission(name=name, params=validate_params(params), poi_names=tuple(poi_names))
 
 
-def load_mission(path: str | Path) -> Mission:
-    """Read and validate the mission file ``path`` (.yaml, .yml or .json)."""
+def read_mission_text(path: str | Path) -> str:
+    """The text of mission file ``path`` (at most :data:`MAX_BYTES`), checked to exist."""
     path = Path(path)
     require(path.exists(), f"mission file '{path}' does not exist")
     require(path.is_file(), f"mission file '{path}' is not a file")
-    kind = "JSON" if path.suffix.lower() == ".json" else "YAML"
+    size = path.stat().st_size
+    require(size <= MAX_BYTES, f"mission file '{path}' has {size} bytes; at most {MAX_BYTES} are read")
     try:
-        text = path.read_text(encoding="utf-8")
-        data = json.loads(text) if kind == "JSON" else yaml.safe_load(text)
-    except (UnicodeDecodeError, json.JSONDecodeError, yaml.YAMLError) as error:
-        raise UserError(f"mission file '{path}' is not valid UTF-8 {kind}: {error}") from None
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as error:
+        raise UserError(f"mission file '{path}' is not valid UTF-8: {error}") from None
+
+
+def parse_mission_text(text: str, path: str | Path) -> Mission:
+    """The mission in ``text``, the content of mission file ``path`` (its suffix says JSON or
+    YAML, its stem is the default name). YAML aliases are refused before anything is built,
+    so a small file cannot expand into a huge document."""
+    path = Path(path)
+    kind = "JSON" if path.suffix.lower() == ".json" else "YAML"
+    require(len(text) <= MAX_BYTES, f"mission file '{path}' has {len(text)} characters; at most {MAX_BYTES} are read")
+    try:
+        if kind == "JSON":
+            data = json.loads(text)
+        else:
+            for event in yaml.parse(text, Loader=yaml.SafeLoader):
+                if isinstance(event, yaml.AliasEvent):
+                    raise UserError(f"mission file '{path}': YAML aliases (*{event.anchor}) are not allowed")
+            data = yaml.safe_load(text)
+    except (json.JSONDecodeError, yaml.YAMLError) as error:
+        flat = " ".join(str(error).split())  # one line, whatever the parser's layout
+        raise UserError(f"mission file '{path}' is not valid {kind}: {flat}") from None
     return parse_mission(data, name=path.stem)
+
+
+def load_mission(path: str | Path) -> Mission:
+    """Read and validate the mission file ``path`` (.yaml, .yml or .json)."""
+    return parse_mission_text(read_mission_text(path), path)
