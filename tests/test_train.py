@@ -21,9 +21,11 @@ import pytest
 from roverswarm.cli import main
 from roverswarm.errors import RunStopped, UserError
 from roverswarm.evaluate import evaluate_run
-from roverswarm.config import REFERENCE, TrainConfig, config_from_json, with_options
+from roverswarm.config import REFERENCE, TrainConfig, config_from_json, validate, with_options
 from roverswarm.runs import CHECKPOINT, LOCK, METRICS, Run, atomic_write, read_metrics
-from roverswarm.trainer import train
+import roverswarm.trainer as trainer_module
+from roverswarm.buffers import make_buffer
+from roverswarm.trainer import run_buffer, train
 
 TIMELESS = lambda rows: [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rows]  # noqa: E731
 
@@ -290,6 +292,23 @@ def test_a_full_disk_keeps_the_previous_file_and_leaves_no_temporary_one(tiny_co
     err = capsys.readouterr().err
     assert "No space left on device); nothing was written" in err and err.count("\n") == 1
     assert not list((tmp_path / "new").glob("*.tmp"))
+
+
+@pytest.mark.parametrize(
+    "options", [{}, {"replay": "ranked", "refresh_every": 5}, {"ensemble": 2}], ids=["uniform", "ranked", "partitions"]
+)
+def test_a_replay_capped_at_the_runs_own_transitions_gives_the_numbers_of_the_full_one(
+    tiny_config, monkeypatch, options
+):
+    config = with_options(tiny_config, {**options, "buffer_size": 50_000, "episodes": 200})
+    params = validate(config)
+    assert run_buffer(config, params).capacity == 200 * params.max_steps  # not 50,000
+    capped = train(config, progress=False)
+    monkeypatch.setattr(
+        trainer_module, "run_buffer", lambda c, p: make_buffer(c.buffer, p.num_rovers, c.learner.ensemble)
+    )
+    full = train(config, progress=False)
+    assert TIMELESS(capped.metrics) == TIMELESS(full.metrics)
 
 
 def test_evaluate_reports_policies_beside_random_and_oracle(unbroken, capsys):

@@ -84,8 +84,13 @@ def example_transition(config: TrainConfig, params: EnvParams) -> Transition:
 
 
 def run_buffer(config: TrainConfig, params: EnvParams) -> Buffer:
-    """The replay of ``config``, with one partition per sub-policy of every agent if K > 1."""
-    return make_buffer(config.buffer, params.num_rovers, config.learner.ensemble)
+    """The replay of ``config``, with one partition per sub-policy of every agent if K > 1.
+    It never holds more than the run's own transitions (``--episodes`` x episode length per
+    seed), whatever ``--buffer-size`` says: a replay that never fills draws what a larger one
+    would, so a short run gets the same numbers from a fraction of the memory."""
+    capacity = min(config.buffer.buffer_size, config.episodes * params.max_steps)
+    replay = dataclasses.replace(config.buffer, buffer_size=capacity)
+    return make_buffer(replay, params.num_rovers, config.learner.ensemble)
 
 
 def init_runner(config: TrainConfig, params: EnvParams, buffer: Buffer) -> Runner:
