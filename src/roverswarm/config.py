@@ -19,7 +19,7 @@ from roverswarm.algos.learner import ALGOS, ON_POLICY, AlgoConfig
 from roverswarm.algos.ppo import PPOConfig
 from roverswarm.buffers.base import ReplayConfig
 from roverswarm.env.mars import EnvParams
-from roverswarm.env.missions import load_mission, parse_mission_text
+from roverswarm.env.missions import load_mission, parse_mission_text, read_mission_text
 from roverswarm.env.scenarios import get_scenario
 from roverswarm.errors import UserError, require
 
@@ -278,6 +278,21 @@ def _ppo_ranges(config: TrainConfig, params: EnvParams) -> None:
 
 
 # ----------------------------------------------------------------------------- options and JSON
+
+
+def with_mission_text(config: TrainConfig) -> TrainConfig:
+    """``config`` with the mission file's absolute path and its content; :class:`UserError` if
+    the file changed since ``config`` kept its content (a run resumed on an edited file)."""
+    path = Path(config.mission).resolve()
+    text = config.mission_text
+    if text is None or path.exists():
+        current = read_mission_text(path)
+        require(
+            text is None or current == text,
+            f"mission file '{path}' changed since this run was trained on it; restore it, or train a new run",
+        )
+        text = current
+    return dataclasses.replace(config, mission=str(path), mission_text=text)
 
 
 def fields_by_name(config) -> dict[str, object]:

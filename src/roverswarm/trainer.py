@@ -46,9 +46,8 @@ from roverswarm.buffers.base import (
     newest_fraction,
     sample_recent,
 )
-from roverswarm.config import TrainConfig, config_from_json, config_to_json, fields_by_name, validate
+from roverswarm.config import TrainConfig, config_from_json, config_to_json, fields_by_name, validate, with_mission_text
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, reset, step_env
-from roverswarm.env.missions import read_mission_text
 from roverswarm.errors import RunStopped, require
 from roverswarm.rollout import contact_counts
 from roverswarm.runs import (
@@ -296,7 +295,7 @@ def train(
     is called after every chunk (e.g. to draw a summary of many runs instead of the bar).
     """
     if config.mission is not None:  # kept absolute and with its content: resume and evaluate need not find the file
-        config = _with_mission_text(config)
+        config = with_mission_text(config)
     params = validate(config)
     require(out is not None or not resume, "resume=True needs the run folder (--out) to resume")
     require(
@@ -307,21 +306,6 @@ def train(
         return _train(config, params, None, resume, progress, on_chunk)
     with folder_lock(Path(out)):  # one writer per run folder
         return _train(config, params, Path(out), resume, progress, on_chunk)
-
-
-def _with_mission_text(config: TrainConfig) -> TrainConfig:
-    """``config`` with the mission file's absolute path and its content; :class:`UserError` if
-    the file changed since ``config`` kept its content (a run resumed on an edited file)."""
-    path = Path(config.mission).resolve()
-    text = config.mission_text
-    if text is None or path.exists():
-        current = read_mission_text(path)
-        require(
-            text is None or current == text,
-            f"mission file '{path}' changed since this run was trained on it; restore it, or train a new run",
-        )
-        text = current
-    return dataclasses.replace(config, mission=str(path), mission_text=text)
 
 
 def _train(
