@@ -311,6 +311,13 @@ def test_a_replay_capped_at_the_runs_own_transitions_gives_the_numbers_of_the_fu
     assert TIMELESS(capped.metrics) == TIMELESS(full.metrics)
 
 
+def test_a_replay_larger_than_the_machine_is_refused_before_it_is_allocated(tiny_config, monkeypatch):
+    monkeypatch.setattr(trainer_module, "physical_memory", lambda: 2**20)  # a 1 MiB machine
+    config = with_options(tiny_config, {"episodes": 10_000, "buffer_size": 10**6})  # 250,000 transitions
+    with pytest.raises(UserError, match=r"the replay needs \d+\.\d GiB \(2 seeds x 250000 transitions x \d+ bytes\)"):
+        train(config, progress=False)
+
+
 def test_evaluate_reports_policies_beside_random_and_oracle(unbroken, capsys):
     rows = evaluate_run(unbroken.out, episodes=50)
     names = [r["policy"] for r in rows]

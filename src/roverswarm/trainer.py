@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import signal
 import time
 from dataclasses import dataclass
@@ -308,6 +309,23 @@ def train(
         return _train(config, params, Path(out), resume, progress, on_chunk)
 
 
+def physical_memory() -> int:
+    """Bytes of physical memory of this machine."""
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def _check_replay_fits(config: TrainConfig, params: EnvParams, buffer: Buffer) -> None:
+    """Refuse, before allocating it, a replay (every seed's) larger than 80% of the machine's memory."""
+    per_transition = sum(x.nbytes for x in jax.tree.leaves(example_transition(config, params)))
+    need = config.seeds * buffer.capacity * per_transition
+    have = physical_memory()
+    require(
+        need <= 0.8 * have,
+        f"the replay needs {need / 2**30:.1f} GiB ({config.seeds} seeds x {buffer.capacity} transitions x "
+        f"{per_transition} bytes) and this machine has {have / 2**30:.1f} GiB; lower --buffer-size or --seeds",
+    )
+
+
 def _train(
     config: TrainConfig,
     params: EnvParams,
@@ -321,6 +339,7 @@ def _train(
         chunk_fn = partial(onpolicy.run_chunk, config, params)
     else:
         buffer = run_buffer(config, params)
+        _check_replay_fits(config, params, buffer)
         runner = init_runner(config, params, buffer)
         chunk_fn = partial(run_chunk, config, params, buffer)
     rows: list[dict[str, float]] = []
