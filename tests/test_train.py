@@ -36,6 +36,8 @@ def cli_args(config: TrainConfig) -> list[str]:
     for f in dataclasses.fields(config):
         value = getattr(config, f.name)
         flag = f.name.replace("_", "-")
+        if f.name == "mission_text":  # kept by training, not an option
+            continue
         if f.name in ("learner", "buffer", "ppo"):
             args += cli_args(value)
         elif isinstance(value, bool):
