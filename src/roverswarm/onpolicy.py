@@ -34,7 +34,7 @@ from roverswarm.algos.ppo import (
 from roverswarm.config import TrainConfig
 from roverswarm.env.mars import EnvParams, observation_size, reset, step_env
 from roverswarm.rollout import contact_counts
-from roverswarm.runs import Runner
+from roverswarm.runs import Runner, start_runner
 
 
 @struct.dataclass
@@ -53,11 +53,8 @@ class Trajectory:
 
 def init_runner(config: TrainConfig, params: EnvParams) -> Runner:
     """Fresh networks for every seed (keys derived from (seed, s) as for MADDPG); no replay."""
-    keys = jax.vmap(lambda s: jax.random.fold_in(jax.random.PRNGKey(config.seed), s))(jnp.arange(config.seeds))
-    init_keys, run_keys = jnp.split(jax.vmap(jax.random.split)(keys), 2, axis=1)
-    learner = jax.vmap(lambda k: init_ppo(k, config, params.num_rovers, observation_size(params)))(init_keys[:, 0])
-    counter = lambda: jnp.zeros((), jnp.int32)  # noqa: E731 (separate arrays: the runner is donated)
-    return Runner(learner=learner, buffer=None, key=run_keys[:, 0], episodes=counter(), updates=counter())
+    sizes = (params.num_rovers, observation_size(params))
+    return start_runner(config, lambda key: init_ppo(key, config, *sizes))
 
 
 def _where_env(done: jax.Array, old, new):

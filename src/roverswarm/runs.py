@@ -16,7 +16,7 @@ import os
 import socket
 import zipfile
 from pathlib import Path
-from typing import IO, Callable, Iterator, Literal
+from typing import IO, Any, Callable, Iterator, Literal
 
 import jax
 import jax.numpy as jnp
@@ -42,6 +42,17 @@ class Runner:
     key: jax.Array  # [S] PRNG keys
     episodes: jax.Array  # [] int32, episodes per seed so far (shared by all seeds)
     updates: jax.Array  # [] int32, updates of every network per seed so far (shared)
+
+
+def start_runner(config: TrainConfig, init_seed: Callable[[jax.Array], Any], buffers: Any = None) -> Runner:
+    """Every seed's fresh state: ``init_seed(key)`` builds one seed's learner, from keys derived
+    from (``config.seed``, s) for seed s; ``buffers`` holds the seeds' empty replays (None
+    on-policy)."""
+    keys = jax.vmap(lambda s: jax.random.fold_in(jax.random.PRNGKey(config.seed), s))(jnp.arange(config.seeds))
+    init_keys, run_keys = jnp.split(jax.vmap(jax.random.split)(keys), 2, axis=1)
+    counter = lambda: jnp.zeros((), jnp.int32)  # noqa: E731 (separate arrays: the runner is donated)
+    learner = jax.vmap(init_seed)(init_keys[:, 0])
+    return Runner(learner=learner, buffer=buffers, key=run_keys[:, 0], episodes=counter(), updates=counter())
 
 
 CHECKPOINT = "checkpoint.npz"

@@ -64,6 +64,7 @@ from roverswarm.runs import (
     read_metrics,
     reduce_metric,
     save_checkpoint,
+    start_runner,
     write_csv,
 )
 
@@ -95,14 +96,9 @@ def run_buffer(config: TrainConfig, params: EnvParams) -> Buffer:
 
 def init_runner(config: TrainConfig, params: EnvParams, buffer: Buffer) -> Runner:
     """Fresh networks and empty replays for every seed."""
-    keys = jax.vmap(lambda s: jax.random.fold_in(jax.random.PRNGKey(config.seed), s))(jnp.arange(config.seeds))
-    init_keys, run_keys = jnp.split(jax.vmap(jax.random.split)(keys), 2, axis=1)
-    learner = jax.vmap(lambda k: init_learner(k, config.learner, params.num_rovers, observation_size(params)))(
-        init_keys[:, 0]
-    )
     buffers = jax.vmap(lambda _: buffer.init(example_transition(config, params)))(jnp.arange(config.seeds))
-    counter = lambda: jnp.zeros((), jnp.int32)  # noqa: E731 (separate arrays: the runner is donated)
-    return Runner(learner=learner, buffer=buffers, key=run_keys[:, 0], episodes=counter(), updates=counter())
+    sizes = (params.num_rovers, observation_size(params))
+    return start_runner(config, lambda key: init_learner(key, config.learner, *sizes), buffers)
 
 
 def noise_scale(config: TrainConfig, episodes: jax.Array) -> jax.Array:
