@@ -138,7 +138,10 @@ def test_resume_after_sigkill_gives_the_numbers_of_an_unbroken_run(tiny_config, 
     )
 
 
-def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(tiny_config, tmp_path):
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_ctrl_c_or_sigterm_saves_a_checkpoint_and_resume_finishes(tiny_config, tmp_path, signum):
+    """Ctrl-C, or SIGTERM as schedulers and Ray send it: the run checkpoints, stops with exit
+    code 1, and resumes to the end."""
     out = tmp_path / "interrupted"
     config = dataclasses.replace(tiny_config, episodes=4000, checkpoint_every=1000)
     process = subprocess.Popen(
@@ -151,7 +154,7 @@ def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(tiny_config, tmp_path):
     while not (out / "tb").exists() and time.time() < deadline:
         time.sleep(0.01)
     time.sleep(0.5)
-    process.send_signal(signal.SIGINT)
+    process.send_signal(signum)
     _, err = process.communicate(timeout=120)
     assert process.returncode == 1, err
     assert "interrupted at episode" in err and "--resume" in err
@@ -393,15 +396,6 @@ def test_run_folders_written_before_the_replay_config_moved_still_load(unbroken,
     assert [r["policy"] for r in evaluate_run(old, episodes=20)][2:] == ["maddpg seed 0", "maddpg seed 1"]
     assert main(["train", "--resume", str(old)]) == 0
     assert TIMELESS(read_metrics(old / "metrics.csv")) == TIMELESS(unbroken.metrics)
-
-
-def test_sigterm_saves_a_checkpoint_like_ctrl_c(tiny_config, tmp_path, signal_at_chunk):
-    """Schedulers and Ray stop work with SIGTERM: the run checkpoints and stops as on Ctrl-C."""
-    signal_at_chunk(signal.SIGTERM)
-    with pytest.raises(RunStopped, match="interrupted at episode 200; checkpoint saved"):
-        train(tiny_config, out=tmp_path, progress=False)
-    with np.load(tmp_path / CHECKPOINT) as data:
-        assert int(data["episodes"]) == 200
 
 
 def test_a_truncated_checkpoint_is_one_line_and_exit_2(unbroken, tmp_path, capsys):
