@@ -4,32 +4,12 @@ from __future__ import annotations
 
 import os
 import signal
-import sys
 
 import pytest
 
 from roverswarm.jaxcache import enable_compilation_cache
 
 enable_compilation_cache()
-
-_EXIT_STATUS: list[int] = []
-
-
-def pytest_sessionfinish(session, exitstatus):
-    _EXIT_STATUS.append(int(exitstatus))
-
-
-@pytest.hookimpl(trylast=True)
-def pytest_unconfigure(config):
-    """Leave without the interpreter's own teardown once pytest is done: on CI the process
-    crashed after its last test had passed (a segfault in libgcc's unwinder, with no Python
-    frame left for faulthandler to print: XLA's compiled code and native threads being torn
-    down), which turned a green run's exit code into 139. Results and caches are written by
-    then; the exit code is pytest's."""
-    if _EXIT_STATUS:
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(_EXIT_STATUS[-1])
 
 
 @pytest.fixture(scope="session")
