@@ -1,4 +1,4 @@
-"""Shared test setup: JAX's persistent compilation cache and small shared configurations."""
+"""Shared test setup: the compilation cache switched off, small shared configurations, a signal fixture."""
 
 from __future__ import annotations
 
@@ -7,9 +7,11 @@ import signal
 
 import pytest
 
-from roverswarm.jaxcache import enable_compilation_cache
-
-enable_compilation_cache()
+# The persistent compilation cache stays off in the test process and the CLI subprocesses it
+# starts: in full-suite runs on CI, XLA crashed (segfault) while serialising or deserialising
+# a cached executable late in the long-lived pytest process (faulthandler: jax's
+# compilation_cache.put/get_executable_and_time). JAX's in-memory cache still shares programs.
+os.environ["ROVERSWARM_JAX_CACHE"] = "off"
 
 
 @pytest.fixture(scope="session")

@@ -12,9 +12,12 @@ from pathlib import Path
 import jax
 
 
-def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
+def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path | None:
     """Turn on the on-disk cache at ``path`` (default ``$ROVERSWARM_JAX_CACHE`` or
-    ``~/.cache/roverswarm/jax``). Returns the directory used."""
+    ``~/.cache/roverswarm/jax``). Returns the directory used; ``ROVERSWARM_JAX_CACHE=off``
+    leaves the cache off (and returns None)."""
+    if os.environ.get("ROVERSWARM_JAX_CACHE") == "off":
+        return None
     directory = Path(path or os.environ.get("ROVERSWARM_JAX_CACHE") or Path.home() / ".cache" / "roverswarm" / "jax")
     directory.mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", str(directory))
