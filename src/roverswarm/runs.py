@@ -185,13 +185,19 @@ def atomic_write(path: Path, write: Callable[[IO], None], binary: bool = False) 
         raise UserError(f"cannot write '{path}' ({error.strerror or error}); {kept}") from error
 
 
-def load_checkpoint(path: Path, template):
-    """Read a runner written by :func:`save_checkpoint` into the structure of ``template``."""
+def read_arrays(path: Path, prefix: str = "") -> dict[str, np.ndarray]:
+    """The arrays of checkpoint ``path`` whose names start with ``prefix``; :class:`UserError`
+    if the file is truncated or not a checkpoint."""
     try:
         with np.load(path, allow_pickle=False) as data:
-            flat = dict(data)
+            return {k: data[k] for k in data.files if k.startswith(prefix)}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
         raise UserError(f"'{path}' cannot be read ({error}); it is truncated or not a roverswarm checkpoint") from error
+
+
+def load_checkpoint(path: Path, template):
+    """Read a runner written by :func:`save_checkpoint` into the structure of ``template``."""
+    flat = read_arrays(path)
     if template.buffer is None:
         return _restore(template, flat)
     capacity = jax.tree.leaves(template.buffer.data)[0].shape[1]
@@ -354,14 +360,7 @@ class Run:
             template = jax.vmap(lambda k: init_ppo(k, config, *sizes))(keys)
         else:
             template = jax.vmap(lambda k: init_learner(k, config.learner, *sizes))(keys)
-        try:
-            with np.load(self.folder / CHECKPOINT, allow_pickle=False) as data:
-                flat = {k: data[k] for k in data.files if k.startswith("learner/")}
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
-            raise UserError(
-                f"'{self.folder / CHECKPOINT}' cannot be read ({error}); it is truncated or not a roverswarm checkpoint"
-            ) from error
-        return _restore(template, flat, prefix="learner/")
+        return _restore(template, read_arrays(self.folder / CHECKPOINT, "learner/"), prefix="learner/")
 
     def policy(self, seed: int = 0) -> Policy:
         """Seed ``seed``'s deterministic policy (with ensembles, a sub-policy per agent and episode)."""
