@@ -1,4 +1,5 @@
-"""Shared test setup: the compilation cache switched off, small shared configurations, a signal fixture."""
+"""Shared test setup: the compilation cache, compiled programs released after each module, small
+shared configurations, a signal fixture."""
 
 from __future__ import annotations
 
@@ -7,11 +8,17 @@ import signal
 
 import pytest
 
-# The persistent compilation cache stays off in the test process and the CLI subprocesses it
-# starts: in full-suite runs on CI, XLA crashed (segfault) while serialising or deserialising
-# a cached executable late in the long-lived pytest process (faulthandler: jax's
-# compilation_cache.put/get_executable_and_time). JAX's in-memory cache still shares programs.
-os.environ["ROVERSWARM_JAX_CACHE"] = "off"
+from roverswarm.jaxcache import enable_compilation_cache, release_compiled_programs
+
+enable_compilation_cache()
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Each module's compiled programs are released after it: kept for the whole session they
+    exceeded Linux's 65,530 memory mappings and crashed XLA (see release_compiled_programs)."""
+    yield
+    release_compiled_programs()
 
 
 @pytest.fixture(scope="session")

@@ -1,4 +1,4 @@
-"""JAX's persistent compilation cache, shared by the CLI and the tests.
+"""JAX's compiled programs: the persistent cache shared by the CLI and the tests, and their release.
 
 JAX compiles once per new shape and configuration; caching compiled programs on disk makes
 the second run of a command (or of the test suite) skip most compilation.
@@ -6,6 +6,7 @@ the second run of a command (or of the test suite) skip most compilation.
 
 from __future__ import annotations
 
+import gc
 import os
 from pathlib import Path
 
@@ -24,3 +25,16 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path | No
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return directory
+
+
+def release_compiled_programs() -> None:
+    """Drop every program JAX holds in memory (they are recompiled, or read from the on-disk
+    cache, when next needed).
+
+    Each compiled CPU program keeps about ten memory mappings for its code until it is
+    released, and JAX keeps every program of a jitted function alive. A process that compiles
+    thousands of them (a long grid, a sweep, the test suite) reaches Linux's limit of 65,530
+    mappings (``vm.max_map_count``), and the next compilation crashes with a segfault. Long
+    commands call this between runs; the tests call it after each module."""
+    jax.clear_caches()
+    gc.collect()

@@ -22,6 +22,7 @@ from rich.table import Table
 
 from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
+from roverswarm.jaxcache import release_compiled_programs
 from roverswarm.config import REFERENCE, TrainConfig, config_from_json, config_to_json, with_options, validate
 from roverswarm.runs import CHECKPOINT, CONFIG, METRICS, read_metrics
 from roverswarm.trainer import train
@@ -198,6 +199,7 @@ def run_local(runs: list[GridRun], summary: Summary) -> None:
         train(
             run.config, out=run.folder, resume=resume, progress=False, on_chunk=lambda e, r=run: summary.progress(r, e)
         )
+        release_compiled_programs()  # each run compiles its own programs; a long grid must not hoard them
         summary.finish(run)
 
 
