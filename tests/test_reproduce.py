@@ -20,7 +20,7 @@ from roverswarm.cli import main
 from roverswarm.errors import RunStopped, UserError
 from roverswarm.experiments import ReproduceConfig, reproduce
 from roverswarm.experiments.paper import PAPER_TABLE1, relative_change
-from roverswarm.config import with_options
+from roverswarm.config import MAPPO, config_from_json, with_options
 
 SCENARIOS = ("paper-2", "paper-3")
 ALGORITHMS = ("ddpg", "maddpg", "maddpg-optimizer")
@@ -125,6 +125,27 @@ def test_an_interrupted_grid_finishes_only_the_missing_runs(base, finished, tmp_
     assert calls == []
     reproduce(tiny_grid(tmp_path, scenarios=("paper-2",), algorithms=("ddpg",), force=True), base, live=False)
     assert calls == [tmp_path / "runs" / "paper-2" / "ddpg"]
+
+
+def test_an_on_policy_arm_trains_from_its_preset_beside_the_papers_learners(base, finished, tmp_path):
+    reproduce(tiny_grid(tmp_path, scenarios=("paper-2",), algorithms=("maddpg", "mappo")), base, live=False)
+    saved = config_from_json((tmp_path / "runs" / "paper-2" / "mappo" / "config.json").read_text())
+    grid = dict(scenario="paper-2", episodes=400, seeds=2, seed=0, log_every=100, checkpoint_every=1)
+    assert saved == with_options(MAPPO, grid)
+    best = {
+        arm: np.array([max(r["episode_reward"] for r in rows) for rows in seed_rows(folder / "metrics.csv").values()])
+        for arm, folder in (
+            ("mappo", tmp_path / "runs" / "paper-2" / "mappo"),
+            ("maddpg", finished / "runs" / "paper-2" / "maddpg"),  # the same run: same config, same seeds
+        )
+    }
+    change = 100 * (best["mappo"].mean() - best["maddpg"].mean()) / abs(best["maddpg"].mean())
+    report = (tmp_path / "report.md").read_text()
+    assert (
+        "MAPPO vs MADDPG* (not a claim of the paper; MAPPO trains from its own preset): maximum mean episode "
+        f"reward change N = 2: {change:+.1f}%" in report
+    )
+    assert "| 2 | MAPPO |" in report
 
 
 def test_a_folder_with_other_settings_is_not_overwritten(base, finished, capsys):

@@ -4,14 +4,21 @@ from __future__ import annotations
 
 import csv
 
+import imageio.v3 as iio
+import jax
+import numpy as np
 import pytest
 import yaml
+
+from roverswarm.animation import episode_frames
 
 from roverswarm.cli import main
 from roverswarm.config import with_options
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
 from roverswarm.experiments.sweep import SweepConfig, load_sweep, sweep
+from roverswarm.rollout import rollout
+from roverswarm.runs import Run
 
 TINY_PPO = dict(num_envs=4, log_every=100, checkpoint_every=1, hidden=[16], epochs=2, minibatches=2)
 TINY = dict(num_envs=4, batch_size=64, buffer_size=4000, warmup=500, log_every=100, checkpoint_every=1, hidden=[32, 32])
@@ -58,6 +65,24 @@ def test_a_sweep_writes_one_row_per_run_with_every_seed(finished, tiny_config):
         assert float(row["train_minutes"]) > 0
     assert "shared-td3" in table.read_text()
     assert (config.out / "sweep.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("setting", ["mappo", "shared-td3"])
+def test_render_draws_a_trained_run_in_its_own_environment(finished, setting, tmp_path, capsys):
+    config, _ = finished
+    run = Run(next(r.folder for r in load_sweep(config.file, config.out) if r.algorithm == setting))
+    out = tmp_path / "episode.gif"
+    assert main(["render", "--policy", str(run.folder), "--policy-seed", "1", "--seed", "3", "--out", str(out)]) == 0
+    policy = run.policy(1)  # the run's seed 1, deterministic, on the run's own scenario
+    episode = rollout(policy, jax.random.PRNGKey(3), run.params, num_episodes=1)
+    expected = episode_frames(episode, run.params, 0, label=f"paper-2 {policy.name}").frames[-1]
+    np.testing.assert_array_equal(iio.imread(out.with_suffix(".png")), expected)
+    assert sum(1 for _ in iio.imiter(out)) == run.params.max_steps + 1
+    capsys.readouterr()
+    assert main(["render", "--policy", str(run.folder), "--scenario", "paper-3", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "was trained for 2 rovers, 2 POIs, 2 traps (paper-2); scenario 'paper-3' has 3 rovers" in err
+    assert err.count("\n") == 1
 
 
 def test_a_rerun_keeps_finished_runs(finished, monkeypatch):

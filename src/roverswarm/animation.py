@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 import jax
 import numpy as np
@@ -21,16 +20,19 @@ from roverswarm.rollout import Rollout, rollout
 
 @dataclass(frozen=True)
 class RenderConfig:
-    """Draw one episode of a reference policy to a GIF or MP4, plus a PNG of the last frame."""
+    """Draw one episode of a policy to a GIF or MP4, plus a PNG of the last frame."""
 
-    scenario: str = "paper-3"
-    """Scenario preset (see `roverswarm scenarios`)."""
-    policy: Literal["oracle", "random"] = "oracle"
-    """Policy that drives the rovers."""
+    scenario: str | None = None
+    """Scenario preset (see `roverswarm scenarios`); default: a trained run's own environment,
+    else paper-3."""
+    policy: str = "oracle"
+    """`oracle`, `random`, or a run folder of `roverswarm train` (any learner; deterministic)."""
     out: Path = Path("episode.gif")
     """Output animation, .gif or .mp4; the last frame is also written beside it as .png."""
     seed: int = 0
     """Random seed of the episode layout and of the random policy."""
+    policy_seed: int = 0
+    """Which of a trained run's seeds drives the rovers."""
 
 
 @dataclass(frozen=True)

@@ -115,12 +115,17 @@ def run_render(cmd: RenderConfig) -> None:
     from roverswarm.env.render import check_animation_path
     from roverswarm.env.scenarios import get_scenario
     from roverswarm.policies import REFERENCE_POLICIES
+    from roverswarm.runs import Run, load_policy
 
-    params = get_scenario(cmd.scenario)
     check_animation_path(cmd.out)
-    png = render_episode(
-        params, REFERENCE_POLICIES[cmd.policy], cmd.out, cmd.seed, label=f"{cmd.scenario} {cmd.policy}"
-    )
+    if cmd.scenario is None and cmd.policy not in REFERENCE_POLICIES and Path(cmd.policy).is_dir():
+        run = Run(cmd.policy)  # its own environment: scenario or mission, as trained
+        params, where = run.params, run.config.env_name()
+    else:
+        where = cmd.scenario or "paper-3"
+        params = get_scenario(where)
+    policy = load_policy(cmd.policy, params, f"scenario '{where}'", cmd.policy_seed)
+    png = render_episode(params, policy, cmd.out, cmd.seed, label=f"{where} {policy.name}")
     Console().print(f"wrote {cmd.out} and {png}")
 
 

@@ -24,9 +24,10 @@ from roverswarm.env.missions import Mission, load_mission
 from roverswarm.animation import episode_frames
 from roverswarm.env.render import FrameRenderer, save_animation
 from roverswarm.errors import require
-from roverswarm.policies import ORACLE, REFERENCE_POLICIES, Policy
+from roverswarm.policies import ORACLE, Policy
 from roverswarm.rollout import MissionStats, Rollout, rollout
-from roverswarm.runs import Run, folder_lock, write_csv
+from roverswarm import runs
+from roverswarm.runs import folder_lock, write_csv
 
 
 @dataclass(frozen=True)
@@ -88,22 +89,13 @@ _FAILURE = re.compile(r"^(\d+)@(\d+)$")
 def load_policy(spec: str, mission: Mission, seed: int = 0) -> Policy:
     """``oracle``, ``random``, or seed ``seed`` of the trained run in folder ``spec``, checked
     against the mission's numbers of rovers, POIs and traps."""
-    if spec in REFERENCE_POLICIES:
-        return REFERENCE_POLICIES[spec]
-    require(
-        Path(spec).is_dir(),
-        f"--policy: expected 'oracle', 'random' or a run folder of `roverswarm train`, got '{spec}'",
-    )
-    run = Run(spec)
-    trained, config, p = run.params, run.config, mission.params
-    require(
-        (trained.num_rovers, trained.num_pois, trained.num_traps) == (p.num_rovers, p.num_pois, p.num_traps),
-        f"--policy: '{spec}' was trained for {trained.num_rovers} rovers, {trained.num_pois} POIs, "
-        f"{trained.num_traps} traps "
-        f"({config.env_name()}); mission '{mission.name}' has {mission.counts()}. "
+    return runs.load_policy(
+        spec,
+        mission.params,
+        f"mission '{mission.name}'",
+        seed,
         "Train on the mission with `roverswarm train --mission FILE`.",
     )
-    return run.policy(seed)
 
 
 def parse_failures(failures: list[str], params: EnvParams) -> np.ndarray:

@@ -27,9 +27,9 @@ from roverswarm.algos.learner import ON_POLICY, LearnerState, init_learner
 from roverswarm.algos.ppo import PPOState, init_ppo
 from roverswarm.buffers.base import BufferState
 from roverswarm.config import TrainConfig, config_from_json, validate
-from roverswarm.env.mars import EnvParams, observation_size
+from roverswarm.env.mars import EnvParams, count_text, observation_size
 from roverswarm.errors import UserError, require
-from roverswarm.policies import Policy, trained_policy
+from roverswarm.policies import REFERENCE_POLICIES, Policy, trained_policy
 
 
 @struct.dataclass
@@ -416,3 +416,24 @@ class Run:
                     self._policy(s, actor, f"{name}, sub-policy {k}", k) for k in range(config.learner.ensemble)
                 ]
         return policies
+
+
+def load_policy(spec: str, params: EnvParams, target: str, seed: int = 0, hint: str = "") -> Policy:
+    """``oracle``, ``random``, or seed ``seed`` of the trained run in folder ``spec``, checked
+    against ``params``'s numbers of rovers, POIs and traps (the positions may differ).
+    ``target`` names ``params`` in the error, ``hint`` ends it."""
+    if spec in REFERENCE_POLICIES:
+        return REFERENCE_POLICIES[spec]
+    require(
+        Path(spec).is_dir(),
+        f"--policy: expected 'oracle', 'random' or a run folder of `roverswarm train`, got '{spec}'",
+    )
+    run = Run(spec)
+    trained = run.params
+    require(
+        (trained.num_rovers, trained.num_pois, trained.num_traps)
+        == (params.num_rovers, params.num_pois, params.num_traps),
+        f"--policy: '{spec}' was trained for {count_text(trained)} ({run.config.env_name()}); {target} has "
+        f"{count_text(params)}.{' ' + hint if hint else ''}",
+    )
+    return run.policy(seed)

@@ -91,6 +91,11 @@ NEVER = np.iinfo(np.int32).max
 """``fail_step`` of a rover that does not fail."""
 
 
+def count_text(params: EnvParams) -> str:
+    """'3 rovers, 3 POIs, 3 traps': the numbers a trained policy is tied to."""
+    return f"{params.num_rovers} rovers, {params.num_pois} POIs, {params.num_traps} traps"
+
+
 def observation_size(params: EnvParams) -> int:
     """Length O of one rover's observation vector."""
     return 4 + 2 * params.num_pois + 2 * params.num_traps + 2 * (params.num_rovers - 1)

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from roverswarm.env.mars import EnvParams, validate_params
+from roverswarm.env.mars import EnvParams, count_text, validate_params
 from roverswarm.errors import UserError, require
 
 MAX_BYTES = 1_000_000
@@ -57,8 +57,7 @@ class Mission:
         return self.params.replace(fixed_starts=None, start_zone=None, terminate_on_complete=False)
 
     def counts(self) -> str:
-        p = self.params
-        return f"{p.num_rovers} rovers, {p.num_pois} POIs, {p.num_traps} traps"
+        return count_text(self.params)
 
 
 def _fields(entry: Any, where: str, required: set[str], optional: set[str]) -> dict[str, Any]:

@@ -23,7 +23,7 @@ from rich.table import Table
 from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
 from roverswarm.jaxcache import release_compiled_programs
-from roverswarm.config import REFERENCE, TrainConfig, config_from_json, config_to_json, with_options, validate
+from roverswarm.config import PRESETS, REFERENCE, TrainConfig, config_from_json, config_to_json, with_options, validate
 from roverswarm.runs import CHECKPOINT, CONFIG, METRICS, read_metrics
 from roverswarm.trainer import train
 
@@ -31,10 +31,14 @@ ALGORITHMS: dict[str, dict[str, str]] = {
     "ddpg": {"algo": "ddpg", "replay": "uniform"},
     "maddpg": {"algo": "maddpg", "replay": "uniform"},
     "maddpg-optimizer": {"algo": "maddpg", "replay": "ranked"},
+    "mappo": {"preset": "mappo"},
+    "ippo": {"preset": "ippo"},
 }
-"""The paper's three learners: DDPG, MADDPG, and MADDPG with the experience sample optimizer."""
+"""The arms of the grid: the paper's three learners (DDPG, MADDPG, and MADDPG with the
+experience sample optimizer) at the grid's base settings, and two on-policy learners beside
+them, each from its own preset (``preset``)."""
 
-Algorithm = Literal["ddpg", "maddpg", "maddpg-optimizer"]
+Algorithm = Literal["ddpg", "maddpg", "maddpg-optimizer", "mappo", "ippo"]
 
 
 @dataclass(frozen=True)
@@ -49,7 +53,8 @@ class ReproduceConfig:
     scenarios: tuple[str, ...] = ("paper-2", "paper-3", "paper-4", "paper-5")
     """Scenario presets, one per swarm size N."""
     algorithms: tuple[Algorithm, ...] = ("ddpg", "maddpg", "maddpg-optimizer")
-    """Learners to compare (Table I needs maddpg and maddpg-optimizer)."""
+    """Learners to compare (Table I needs maddpg and maddpg-optimizer). `mappo` and `ippo` add
+    an on-policy arm beside the paper's, trained from its own preset (docs/ppo.md)."""
     seeds: int | None = None
     """Seeds per run, vmapped together (default 5; 2 with --quick)."""
     episodes: int | None = None
@@ -89,8 +94,9 @@ class GridRun:
 
 
 def plan(config: ReproduceConfig, base: TrainConfig = REFERENCE) -> list[GridRun]:
-    """The runs of the grid, at the settings of ``base`` (default: the reference, i.e. the
-    paper's), after checking the input."""
+    """The runs of the grid, at the settings of ``base`` (default: the reference preset), after
+    checking the input. An arm naming a preset (MAPPO, IPPO) starts from that preset instead,
+    with ``base``'s logging and checkpoint intervals."""
     require(len(config.scenarios) > 0, "--scenarios: give at least one scenario")
     for name in config.scenarios:
         require(name in SCENARIOS, f"--scenarios: unknown scenario '{name}'; known: {', '.join(SCENARIOS)}")
@@ -103,17 +109,18 @@ def plan(config: ReproduceConfig, base: TrainConfig = REFERENCE) -> list[GridRun
     runs = []
     for scenario in config.scenarios:
         for algorithm in config.algorithms:
-            settings = ALGORITHMS[algorithm]
+            settings = dict(ALGORITHMS[algorithm])
+            start = PRESETS[settings.pop("preset")] if "preset" in settings else base
             train_config = with_options(
-                base,
+                start,
                 dict(
+                    settings,
                     scenario=scenario,
-                    algo=settings["algo"],
-                    replay=settings["replay"],
                     episodes=config.grid_episodes,
                     seeds=config.grid_seeds,
                     seed=config.seed,
                     log_every=500 if config.quick else base.log_every,
+                    checkpoint_every=base.checkpoint_every,
                 ),
             )
             runs.append(GridRun(scenario, algorithm, train_config, config.out / "runs" / scenario / algorithm))

@@ -38,7 +38,13 @@ from roverswarm.runs import METRICS, folder_lock, read_metrics
 PAPER_TABLE1: dict[int, tuple[float, float]] = {2: (1.42, 2.26), 3: (3.08, 2.50), 4: (4.71, 2.69), 5: (8.78, 1.79)}
 """The paper's Table I: N -> (% change in episode reward, % change in training time)."""
 
-LABELS = {"ddpg": "DDPG", "maddpg": "MADDPG", "maddpg-optimizer": "MADDPG + optimizer"}
+LABELS = {
+    "ddpg": "DDPG",
+    "maddpg": "MADDPG",
+    "maddpg-optimizer": "MADDPG + optimizer",
+    "mappo": "MAPPO",
+    "ippo": "IPPO",
+}
 
 
 @dataclass(frozen=True)
@@ -247,12 +253,27 @@ def verdicts(results: list[RunResult], rows: list[dict[str, float]]) -> list[str
         if (n, "maddpg") in by and (n, "ddpg") in by
     ]
     if pairs:
-        wins = [(n, m.best.mean() > d.best.mean(), relative_change(m.best, d.best)) for n, m, d in pairs]
-        count = sum(w for _, w, _ in wins)
-        word = "supported" if count == len(wins) else ("partly supported" if count else "not supported")
-        detail = "; ".join(f"N = {n}: {c[0]:+.1f}% (p = {c[3]:.2g})" for n, _, c in wins)
-        lines.append(f"- *MADDPG beats DDPG*: {word}; MADDPG's maximum mean episode reward vs DDPG's: {detail}.")
+        count = sum(m.best.mean() > d.best.mean() for _, m, d in pairs)
+        word = "supported" if count == len(pairs) else ("partly supported" if count else "not supported")
+        lines.append(
+            f"- *MADDPG beats DDPG*: {word}; MADDPG's maximum mean episode reward vs DDPG's: {_changes(pairs)}."
+        )
+    for arm in ("mappo", "ippo"):
+        beside = [
+            (n, by[(n, arm)], by[(n, "maddpg")]) for n in sorted(n for n, a in by if a == arm and (n, "maddpg") in by)
+        ]
+        if beside:
+            lines.append(
+                f"- *Beside the paper, {LABELS[arm]} vs MADDPG* (not a claim of the paper; {LABELS[arm]} trains "
+                f"from its own preset): maximum mean episode reward change {_changes(beside)}."
+            )
     return lines
+
+
+def _changes(pairs: list[tuple[int, RunResult, RunResult]]) -> str:
+    """Per (N, treated, control): the relative change of the maximum mean episode reward and its p-value."""
+    changes = ((n, relative_change(treated.best, control.best)) for n, treated, control in pairs)
+    return "; ".join(f"N = {n}: {c[0]:+.1f}% (p = {c[3]:.2g})" for n, c in changes)
 
 
 def _versions() -> str:
@@ -285,7 +306,8 @@ def write_report(
 - Grid: scenarios {", ".join(config.scenarios)} x {", ".join(LABELS[a] for a in config.algorithms)}; \
 {example.seeds} seeds per run (vmapped), {example.episodes} episodes per seed{" (--quick)" if config.quick else ""}.
 - One run's full training configuration (the grid sets scenario, algorithm, replay, episodes, seeds and seed; \
-the rest is the same for every run):
+the rest is the same for every run of the paper's learners; MAPPO and IPPO start from their own presets, \
+stored in their runs' `config.json`):
 
 ```json
 {config_to_json(example)}
