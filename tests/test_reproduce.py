@@ -32,7 +32,13 @@ def base(tiny_config):
 
 
 def tiny_grid(out: Path, **changes) -> ReproduceConfig:
-    return ReproduceConfig(**{"out": out, "scenarios": SCENARIOS, "seeds": 2, "episodes": 400, **changes})
+    """A grid of tiny runs, trained in this process unless ``changes`` say otherwise."""
+    return ReproduceConfig(**{"out": out, "scenarios": SCENARIOS, "seeds": 2, "episodes": 400, "jobs": 1, **changes})
+
+
+def timeless(rows: dict[int, list[dict[str, float]]]) -> dict[int, list[dict[str, float]]]:
+    """Metrics rows without their wall-clock seconds."""
+    return {s: [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rs] for s, rs in rows.items()}
 
 
 @pytest.fixture(scope="module")
@@ -210,7 +216,7 @@ def _reproduce_on_ray(config, base) -> list[int]:
 
 def test_ray_backend_retries_a_killed_worker_and_matches_the_local_backend(base, finished, tmp_path):
     pytest.importorskip("ray")
-    config = tiny_grid(tmp_path, scenarios=("paper-2",), backend="ray", retries=2)
+    config = tiny_grid(tmp_path, scenarios=("paper-2",), backend="ray", jobs=None, retries=2)
     # Ray's driver runs in a process of its own: its native threads outlive ray.shutdown() and
     # crashed the test process minutes later (a segfault after the last test, twice on CI)
     with multiprocessing.get_context("spawn").Pool(1) as pool:
@@ -220,8 +226,32 @@ def test_ray_backend_retries_a_killed_worker_and_matches_the_local_backend(base,
         ours, local = (
             seed_rows(root / "runs" / "paper-2" / algorithm / "metrics.csv") for root in (tmp_path, finished)
         )
-        strip = lambda rows: {
-            s: [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rs] for s, rs in rows.items()
-        }  # noqa: E731
-        assert strip(ours) == strip(local)
+        assert timeless(ours) == timeless(local)
     assert (tmp_path / "report.md").exists()
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs 2 CPUs")
+def test_jobs_train_runs_side_by_side_to_the_numbers_of_one_process(base, finished, tmp_path, capsys):
+    grid = tiny_grid(tmp_path, scenarios=("paper-2",), jobs=2)
+    assert [len(share) for share in grid_module.cpu_shares(2)] == [1, 1]
+    # a driver process, stopped by SIGTERM once both runs have written rows: each run keeps a checkpoint
+    driver = multiprocessing.get_context("spawn").Process(target=reproduce, args=(grid, base), kwargs={"live": False})
+    driver.start()
+    metrics = [tmp_path / "runs" / "paper-2" / a / "metrics.csv" for a in ALGORITHMS]
+    while not all(m.exists() for m in metrics[:2]) and driver.is_alive():
+        time.sleep(0.2)
+    os.kill(driver.pid, signal.SIGTERM)
+    driver.join()
+    assert driver.exitcode != 0 and not (tmp_path / "report.md").exists()
+    assert all((m.parent / "checkpoint.npz").exists() for m in metrics[:2])
+    reproduce(grid, base, live=False)  # resumes the interrupted runs, trains the rest, side by side
+    for algorithm in ALGORITHMS:
+        ours, theirs = (
+            seed_rows(root / "runs" / "paper-2" / algorithm / "metrics.csv") for root in (tmp_path, finished)
+        )
+        assert timeless(ours) == timeless(theirs)
+    for jobs in (0, len(os.sched_getaffinity(0)) + 1):
+        assert main(["reproduce", "--out", str(tmp_path), "--jobs", str(jobs)]) == 2
+        assert f"--jobs must be in [1, {len(os.sched_getaffinity(0))}]" in capsys.readouterr().err
+    assert main(["reproduce", "--out", str(tmp_path), "--jobs", "1", "--backend", "ray"]) == 2
+    assert "--jobs is for --backend local" in capsys.readouterr().err

@@ -310,14 +310,32 @@ def physical_memory() -> int:
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
-def _check_replay_fits(config: TrainConfig, params: EnvParams, buffer: Buffer) -> None:
-    """Refuse, before allocating it, a replay (every seed's) larger than 80% of the machine's memory."""
+RUN_OVERHEAD = 2 * 2**30
+"""Memory of a run besides its replay (compiled programs, networks, environment batches, the
+Python process): a reproduce --quick grid peaks near 2.1 GB, replays included."""
+
+
+def replay_bytes(config: TrainConfig, params: EnvParams) -> tuple[int, int, int]:
+    """(bytes, transitions, bytes per transition) of every seed's replay of ``config`` (0 for PPO)."""
+    if config.learner.algo in ON_POLICY:
+        return 0, 0, 0
+    capacity = run_buffer(config, params).capacity
     per_transition = sum(x.nbytes for x in jax.tree.leaves(example_transition(config, params)))
-    need = config.seeds * buffer.capacity * per_transition
+    return config.seeds * capacity * per_transition, capacity, per_transition
+
+
+def run_memory(config: TrainConfig) -> int:
+    """Bytes a run of ``config`` needs: its replay plus :data:`RUN_OVERHEAD`."""
+    return replay_bytes(config, validate(config))[0] + RUN_OVERHEAD
+
+
+def _check_replay_fits(config: TrainConfig, params: EnvParams) -> None:
+    """Refuse, before allocating it, a replay (every seed's) larger than 80% of the machine's memory."""
+    need, capacity, per_transition = replay_bytes(config, params)
     have = physical_memory()
     require(
         need <= 0.8 * have,
-        f"the replay needs {need / 2**30:.1f} GiB ({config.seeds} seeds x {buffer.capacity} transitions x "
+        f"the replay needs {need / 2**30:.1f} GiB ({config.seeds} seeds x {capacity} transitions x "
         f"{per_transition} bytes) and this machine has {have / 2**30:.1f} GiB; lower --buffer-size or --seeds",
     )
 
@@ -335,7 +353,7 @@ def _train(
         chunk_fn = partial(onpolicy.run_chunk, config, params)
     else:
         buffer = run_buffer(config, params)
-        _check_replay_fits(config, params, buffer)
+        _check_replay_fits(config, params)
         runner = init_runner(config, params, buffer)
         chunk_fn = partial(run_chunk, config, params, buffer)
     rows: list[dict[str, float]] = []

@@ -9,7 +9,11 @@ worker dies; either way the files land in the same folders and the same report.
 
 from __future__ import annotations
 
+import multiprocessing
+import os
 import shutil
+import signal
+import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -21,11 +25,11 @@ from rich.live import Live
 from rich.table import Table
 
 from roverswarm.env.scenarios import SCENARIOS
-from roverswarm.errors import UserError, require
+from roverswarm.errors import RunStopped, UserError, require
 from roverswarm.jaxcache import release_compiled_programs
 from roverswarm.config import PRESETS, REFERENCE, TrainConfig, config_from_json, config_to_json, with_options, validate
 from roverswarm.runs import CHECKPOINT, CONFIG, METRICS, read_metrics
-from roverswarm.trainer import train
+from roverswarm.trainer import physical_memory, run_memory, train
 
 ALGORITHMS: dict[str, dict[str, str]] = {
     "ddpg": {"algo": "ddpg", "replay": "uniform"},
@@ -64,7 +68,11 @@ class ReproduceConfig:
     force: bool = False
     """Train every run again, even finished ones."""
     backend: Literal["local", "ray"] = "local"
-    """`local`: runs one after another in this process; `ray`: one Ray task per run."""
+    """`local`: runs on this machine (see --jobs); `ray`: one Ray task per run."""
+    jobs: int | None = None
+    """Local backend: runs trained side by side, each in its own process on its share of the
+    CPUs. Default: as many as the CPUs, the memory the runs need and the runs left allow;
+    1 trains them one after another in this process."""
     address: str | None = None
     """Ray cluster address for --backend ray (default: start a local Ray instance)."""
     retries: int = 3
@@ -106,6 +114,12 @@ def plan(config: ReproduceConfig, base: TrainConfig = REFERENCE) -> list[GridRun
     require(config.grid_seeds >= 1, f"--seeds must be >= 1, got {config.grid_seeds}")
     require(config.retries >= 0, f"--retries must be >= 0, got {config.retries}")
     require(config.address is None or config.backend == "ray", "--address needs --backend ray")
+    cpus = len(os.sched_getaffinity(0))
+    require(
+        config.jobs is None or 1 <= config.jobs <= cpus,
+        f"--jobs must be in [1, {cpus}] (the CPUs this process may use), got {config.jobs}",
+    )
+    require(config.jobs is None or config.backend == "local", "--jobs is for --backend local (Ray places its tasks)")
     runs = []
     for scenario in config.scenarios:
         for algorithm in config.algorithms:
@@ -210,6 +224,76 @@ def run_local(runs: list[GridRun], summary: Summary) -> None:
         summary.finish(run)
 
 
+def default_jobs(runs: list[GridRun]) -> int:
+    """Runs to train side by side: at most one per CPU, as many as fit in 80% of the memory
+    (:func:`~roverswarm.trainer.run_memory`), and no more than there are runs."""
+    if not runs:
+        return 1
+    fit = int(0.8 * physical_memory() // max(run_memory(run.config) for run in runs))
+    return max(1, min(len(runs), len(os.sched_getaffinity(0)), fit))
+
+
+def cpu_shares(jobs: int) -> list[list[int]]:
+    """The CPUs this process may use, dealt out to ``jobs`` (at most one job per CPU)."""
+    cpus = sorted(os.sched_getaffinity(0))
+    return [cpus[i::jobs] for i in range(jobs)]
+
+
+def run_jobs(runs: list[GridRun], summary: Summary, jobs: int) -> None:
+    """Train ``runs`` ``jobs`` at a time, each in its own process pinned to its share of this
+    process's CPUs (resuming interrupted ones); the summary follows each run's metrics.csv.
+
+    Ctrl-C or SIGTERM stops every running run at its next chunk with a checkpoint (rerun the
+    command to resume); a run that fails stops the others the same way and is reported."""
+    free = cpu_shares(jobs)
+    context = multiprocessing.get_context("spawn")  # a fresh JAX per process (fork would copy threads)
+    failures = context.Queue()
+    queue, running = list(runs), {}
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM as Ctrl-C
+    try:
+        while queue or running:
+            while queue and free:
+                run, share = queue.pop(0), free.pop()
+                args = (config_to_json(run.config), str(run.folder), status(run) == "partial", share, failures)
+                process = context.Process(target=_train_job, args=args, daemon=False)
+                process.start()
+                running[process] = (run, share)
+            time.sleep(0.5)
+            for process in [p for p in running if not p.is_alive()]:
+                run, share = running.pop(process)
+                free.append(share)
+                if process.exitcode != 0:
+                    message = failures.get() if not failures.empty() else f"exit code {process.exitcode}"
+                    raise RunStopped(f"run '{run.name}' stopped: {message}")
+                summary.finish(run)
+            for run, _ in running.values():
+                summary.progress(run, _episodes_done(run))
+    except KeyboardInterrupt:
+        raise RunStopped(
+            "interrupted; every running run saved a checkpoint: rerun the same command to resume"
+        ) from None
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        for process in running:  # stop at the next chunk, with a checkpoint
+            if process.is_alive():
+                os.kill(process.pid, signal.SIGINT)
+        for process in running:
+            process.join()
+
+
+def _train_job(config_json: str, folder: str, resume: bool, cpus: list[int], failures) -> None:
+    """A job of :func:`run_jobs`: one run on ``cpus``; its error (one line) goes to ``failures``."""
+    os.sched_setaffinity(0, cpus)  # before JAX starts its threads, which it sizes by the CPUs it may use
+    from roverswarm.jaxcache import enable_compilation_cache
+
+    enable_compilation_cache()
+    try:
+        train(config_from_json(config_json), out=Path(folder), resume=resume, progress=False)
+    except (UserError, RunStopped, OSError) as error:
+        failures.put(str(error))
+        sys.exit(1)
+
+
 def train_remote(config_json: str) -> dict[str, bytes]:
     """A Ray task: train one run in a scratch folder, return its files {relative path: bytes}."""
     from roverswarm.jaxcache import enable_compilation_cache
@@ -267,11 +351,13 @@ def run_grid(config: ReproduceConfig, base: TrainConfig = REFERENCE, live: bool 
     done = {run.name for run in runs if status(run) == "done"}
     todo = [run for run in runs if run.name not in done]
     summary = Summary(runs, done)
-    execute: Callable[[], None] = (
-        (lambda: run_ray(todo, summary, config.address, config.retries))
-        if config.backend == "ray"
-        else (lambda: run_local(todo, summary))
-    )
+    jobs = config.jobs or default_jobs(todo)
+    if config.backend == "ray":
+        execute: Callable[[], None] = lambda: run_ray(todo, summary, config.address, config.retries)  # noqa: E731
+    elif jobs > 1:
+        execute = lambda: run_jobs(todo, summary, jobs)  # noqa: E731
+    else:
+        execute = lambda: run_local(todo, summary)  # noqa: E731
     if live:
         with Live(summary, console=Console(), refresh_per_second=2):
             execute()
