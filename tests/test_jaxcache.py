@@ -9,18 +9,14 @@ import jax
 import jax.numpy as jnp
 import pytest
 
-from roverswarm.jaxcache import release_compiled_programs
-
-
-def _mappings() -> int:
-    with open("/proc/self/maps") as f:
-        return sum(1 for _ in f)
+from roverswarm import jaxcache
+from roverswarm.jaxcache import CROWDED, memory_mappings, release_compiled_programs
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="counts /proc/self/maps")
-def test_released_programs_give_back_their_memory_mappings():
+def test_released_programs_give_back_their_memory_mappings(monkeypatch):
     release_compiled_programs()
-    before = _mappings()
+    before = memory_mappings()
 
     @jax.jit
     def f(x):
@@ -28,7 +24,10 @@ def test_released_programs_give_back_their_memory_mappings():
 
     for n in range(2, 42):  # 40 shapes: 40 programs kept alive by the jit cache
         f(jnp.ones((n, 3))).block_until_ready()
-    grown = _mappings() - before
+    grown = memory_mappings() - before
     assert grown > 100, f"40 programs added only {grown} mappings; the premise of this test no longer holds"
-    release_compiled_programs()
-    assert _mappings() - before < grown / 4
+    release_compiled_programs(only_if_crowded=True)  # far from crowded: kept
+    assert memory_mappings() - before >= grown * 0.9 and memory_mappings() < CROWDED
+    monkeypatch.setattr(jaxcache, "CROWDED", before + grown // 2)  # now crowded: released
+    release_compiled_programs(only_if_crowded=True)
+    assert memory_mappings() - before < grown / 4

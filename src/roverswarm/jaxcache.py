@@ -27,14 +27,30 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path | No
     return directory
 
 
-def release_compiled_programs() -> None:
+CROWDED = 20_000
+"""Memory mappings past which long commands release their compiled programs (Linux allows 65,530)."""
+
+
+def memory_mappings() -> int:
+    """Memory mappings this process holds (0 where ``/proc/self/maps`` does not exist)."""
+    try:
+        with open("/proc/self/maps", "rb") as maps:
+            return sum(1 for _ in maps)
+    except OSError:
+        return 0
+
+
+def release_compiled_programs(only_if_crowded: bool = False) -> None:
     """Drop every program JAX holds in memory (they are recompiled, or read from the on-disk
-    cache, when next needed).
+    cache, when next needed); with ``only_if_crowded``, only past :data:`CROWDED` mappings.
 
     Each compiled CPU program keeps about ten memory mappings for its code until it is
     released, and JAX keeps every program of a jitted function alive. A process that compiles
-    thousands of them (a long grid, a sweep, the test suite) reaches Linux's limit of 65,530
-    mappings (``vm.max_map_count``), and the next compilation crashes with a segfault. Long
-    commands call this between runs; the tests call it after each module."""
+    thousands of them (a long grid or sweep, the test suite) reaches Linux's limit of 65,530
+    mappings (``vm.max_map_count``), and the next compilation crashes with a segfault. Grids
+    and sweeps check between runs (recompiling costs seconds per run, so they release only
+    when crowded); the tests release after each module."""
+    if only_if_crowded and memory_mappings() < CROWDED:
+        return
     jax.clear_caches()
     gc.collect()

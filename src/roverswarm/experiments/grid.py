@@ -220,7 +220,7 @@ def run_local(runs: list[GridRun], summary: Summary) -> None:
         train(
             run.config, out=run.folder, resume=resume, progress=False, on_chunk=lambda e, r=run: summary.progress(r, e)
         )
-        release_compiled_programs()  # each run compiles its own programs; a long grid must not hoard them
+        release_compiled_programs(only_if_crowded=True)  # each run compiles its own programs
         summary.finish(run)
 
 
