@@ -255,3 +255,15 @@ def test_jobs_train_runs_side_by_side_to_the_numbers_of_one_process(base, finish
         assert f"--jobs must be in [1, {len(os.sched_getaffinity(0))}]" in capsys.readouterr().err
     assert main(["reproduce", "--out", str(tmp_path), "--jobs", "1", "--backend", "ray"]) == 2
     assert "--jobs is for --backend local" in capsys.readouterr().err
+
+
+def test_default_jobs_follow_run_length_cpus_and_memory(base, tmp_path, monkeypatch):
+    long = grid_module.plan(tiny_grid(tmp_path, episodes=60_000), base)  # 6 runs, planned only
+    short = grid_module.plan(tiny_grid(tmp_path), base)
+    cpus = len(os.sched_getaffinity(0))
+    assert grid_module.default_jobs(short) == 1  # start-up and compilation dominate short runs
+    assert grid_module.default_jobs(long) == min(6, cpus)
+    assert grid_module.default_jobs(long[:1]) == 1
+    need = max(grid_module.run_memory(run.config) for run in long)
+    monkeypatch.setattr(grid_module, "physical_memory", lambda: int(need / 0.8) + 1)  # room for one run only
+    assert grid_module.default_jobs(long) == 1

@@ -71,8 +71,9 @@ class ReproduceConfig:
     """`local`: runs on this machine (see --jobs); `ray`: one Ray task per run."""
     jobs: int | None = None
     """Local backend: runs trained side by side, each in its own process on its share of the
-    CPUs. Default: as many as the CPUs, the memory the runs need and the runs left allow;
-    1 trains them one after another in this process."""
+    CPUs. Default: one at a time for runs under 5000 episodes (--quick), else as many as the
+    CPUs, the memory the runs need and the runs left allow; 1 trains them one after another
+    in this process."""
     address: str | None = None
     """Ray cluster address for --backend ray (default: start a local Ray instance)."""
     retries: int = 3
@@ -224,10 +225,17 @@ def run_local(runs: list[GridRun], summary: Summary) -> None:
         summary.finish(run)
 
 
+SHORT_RUN = 5000
+"""Episodes per seed below which runs train one after another: start-up and compilation
+dominate such runs, and side by side they finished no sooner (benchmarks/reproduce_jobs.py:
+the quick grid 0.94x with two jobs at 2000 episodes, 1.40x at 10,000)."""
+
+
 def default_jobs(runs: list[GridRun]) -> int:
-    """Runs to train side by side: at most one per CPU, as many as fit in 80% of the memory
+    """Runs to train side by side: one at a time for short runs (:data:`SHORT_RUN`), else at
+    most one per CPU, as many as fit in 80% of the memory
     (:func:`~roverswarm.trainer.run_memory`), and no more than there are runs."""
-    if not runs:
+    if not runs or max(run.config.episodes for run in runs) < SHORT_RUN:
         return 1
     fit = int(0.8 * physical_memory() // max(run_memory(run.config) for run in runs))
     return max(1, min(len(runs), len(os.sched_getaffinity(0)), fit))
