@@ -18,6 +18,8 @@ import sys
 import tempfile
 import time
 
+from roverswarm.experiments.grid import usable_cpus
+
 
 def timed(jobs: int, scenarios: list[str], episodes: int) -> float:
     """Wall seconds of ``roverswarm reproduce --quick --jobs jobs`` in fresh folders."""
@@ -32,7 +34,7 @@ def timed(jobs: int, scenarios: list[str], episodes: int) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--jobs", type=int, default=len(os.sched_getaffinity(0)))
+    parser.add_argument("--jobs", type=int, default=len(usable_cpus()))
     parser.add_argument("--scenarios", nargs="+", default=["paper-2", "paper-3"])
     parser.add_argument("--episodes", type=int, default=2000)
     args = parser.parse_args()

@@ -230,7 +230,7 @@ def test_ray_backend_retries_a_killed_worker_and_matches_the_local_backend(base,
     assert (tmp_path / "report.md").exists()
 
 
-@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs 2 CPUs")
+@pytest.mark.skipif(len(grid_module.usable_cpus()) < 2, reason="needs 2 CPUs")
 def test_jobs_train_runs_side_by_side_to_the_numbers_of_one_process(base, finished, tmp_path, capsys):
     grid = tiny_grid(tmp_path, scenarios=("paper-2",), jobs=2)
     assert [len(share) for share in grid_module.cpu_shares(2)] == [1, 1]
@@ -250,9 +250,9 @@ def test_jobs_train_runs_side_by_side_to_the_numbers_of_one_process(base, finish
             seed_rows(root / "runs" / "paper-2" / algorithm / "metrics.csv") for root in (tmp_path, finished)
         )
         assert timeless(ours) == timeless(theirs)
-    for jobs in (0, len(os.sched_getaffinity(0)) + 1):
+    for jobs in (0, len(grid_module.usable_cpus()) + 1):
         assert main(["reproduce", "--out", str(tmp_path), "--jobs", str(jobs)]) == 2
-        assert f"--jobs must be in [1, {len(os.sched_getaffinity(0))}]" in capsys.readouterr().err
+        assert f"--jobs must be in [1, {len(grid_module.usable_cpus())}]" in capsys.readouterr().err
     assert main(["reproduce", "--out", str(tmp_path), "--jobs", "1", "--backend", "ray"]) == 2
     assert "--jobs is for --backend local" in capsys.readouterr().err
 
@@ -260,7 +260,7 @@ def test_jobs_train_runs_side_by_side_to_the_numbers_of_one_process(base, finish
 def test_default_jobs_follow_run_length_cpus_and_memory(base, tmp_path, monkeypatch):
     long = grid_module.plan(tiny_grid(tmp_path, episodes=60_000), base)  # 6 runs, planned only
     short = grid_module.plan(tiny_grid(tmp_path), base)
-    cpus = len(os.sched_getaffinity(0))
+    cpus = len(grid_module.usable_cpus())
     assert grid_module.default_jobs(short) == 1  # start-up and compilation dominate short runs
     assert grid_module.default_jobs(long) == min(6, cpus)
     assert grid_module.default_jobs(long[:1]) == 1

@@ -115,7 +115,7 @@ def plan(config: ReproduceConfig, base: TrainConfig = REFERENCE) -> list[GridRun
     require(config.grid_seeds >= 1, f"--seeds must be >= 1, got {config.grid_seeds}")
     require(config.retries >= 0, f"--retries must be >= 0, got {config.retries}")
     require(config.address is None or config.backend == "ray", "--address needs --backend ray")
-    cpus = len(os.sched_getaffinity(0))
+    cpus = len(usable_cpus())
     require(
         config.jobs is None or 1 <= config.jobs <= cpus,
         f"--jobs must be in [1, {cpus}] (the CPUs this process may use), got {config.jobs}",
@@ -238,12 +238,19 @@ def default_jobs(runs: list[GridRun]) -> int:
     if not runs or max(run.config.episodes for run in runs) < SHORT_RUN:
         return 1
     fit = int(0.8 * physical_memory() // max(run_memory(run.config) for run in runs))
-    return max(1, min(len(runs), len(os.sched_getaffinity(0)), fit))
+    return max(1, min(len(runs), len(usable_cpus()), fit))
+
+
+def usable_cpus() -> list[int]:
+    """The CPUs this process may use (all of them where the system cannot say, e.g. macOS)."""
+    if hasattr(os, "sched_getaffinity"):
+        return sorted(os.sched_getaffinity(0))
+    return list(range(os.cpu_count() or 1))
 
 
 def cpu_shares(jobs: int) -> list[list[int]]:
     """The CPUs this process may use, dealt out to ``jobs`` (at most one job per CPU)."""
-    cpus = sorted(os.sched_getaffinity(0))
+    cpus = usable_cpus()
     return [cpus[i::jobs] for i in range(jobs)]
 
 
@@ -291,7 +298,8 @@ def run_jobs(runs: list[GridRun], summary: Summary, jobs: int) -> None:
 
 def _train_job(config_json: str, folder: str, resume: bool, cpus: list[int], failures) -> None:
     """A job of :func:`run_jobs`: one run on ``cpus``; its error (one line) goes to ``failures``."""
-    os.sched_setaffinity(0, cpus)  # before JAX starts its threads, which it sizes by the CPUs it may use
+    if hasattr(os, "sched_setaffinity"):  # Linux; elsewhere the jobs share every CPU
+        os.sched_setaffinity(0, cpus)  # before JAX starts its threads, which it sizes by the CPUs it may use
     from roverswarm.jaxcache import enable_compilation_cache
 
     enable_compilation_cache()
