@@ -58,7 +58,7 @@ class ReproduceConfig:
     """Scenario presets, one per swarm size N."""
     algorithms: tuple[Algorithm, ...] = ("ddpg", "maddpg", "maddpg-optimizer")
     """Learners to compare (Table I needs maddpg and maddpg-optimizer). `mappo` and `ippo` add
-    an on-policy arm beside the paper's, trained from its own preset (docs/ppo.md)."""
+    an on-policy arm beside the paper's, trained from its own preset (docs/training.md)."""
     seeds: int | None = None
     """Seeds per run, vmapped together (default 5; 2 with --quick)."""
     episodes: int | None = None
@@ -367,10 +367,9 @@ def run_grid(config: ReproduceConfig, base: TrainConfig = REFERENCE, live: bool 
     done = {run.name for run in runs if status(run) == "done"}
     todo = [run for run in runs if run.name not in done]
     summary = Summary(runs, done)
-    jobs = config.jobs or default_jobs(todo)
     if config.backend == "ray":
         execute: Callable[[], None] = lambda: run_ray(todo, summary, config.address, config.retries)  # noqa: E731
-    elif jobs > 1:
+    elif (jobs := config.jobs or default_jobs(todo)) > 1:
         execute = lambda: run_jobs(todo, summary, jobs)  # noqa: E731
     else:
         execute = lambda: run_local(todo, summary)  # noqa: E731
