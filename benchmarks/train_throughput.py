@@ -59,10 +59,11 @@ from roverswarm import onpolicy
 from roverswarm.algos.learner import ON_POLICY, init_learner
 from roverswarm.algos.maddpg import update
 from roverswarm.buffers.base import Transition, gather
+from roverswarm.buffers.compact import example_record, expand
 from roverswarm.env.mars import ACTION_SIZE, observation_size
 from roverswarm.jaxcache import enable_compilation_cache
 from roverswarm.config import PRESETS, TrainConfig, validate, with_options
-from roverswarm.trainer import example_transition, init_runner, run_buffer, run_chunk
+from roverswarm.trainer import init_runner, run_buffer, run_chunk
 
 REFERENCE_SECONDS_N3 = 90.0
 
@@ -151,7 +152,7 @@ def replay_seconds(config: TrainConfig, iterations: int = 20) -> tuple[float, fl
     params = validate(config)
     buffer = run_buffer(config, params)
     updates = config.num_envs * params.max_steps // config.update_every  # per iteration
-    state = jax.jit(partial(fill, buffer))(buffer.init(example_transition(config, params)))
+    state = jax.jit(partial(fill, buffer))(buffer.init(example_record(params, config.learner.ensemble)))
     if state.extra is not None:
         state = state.replace(
             extra=state.extra.replace(loss=jax.random.uniform(jax.random.PRNGKey(1), state.extra.loss.shape))
@@ -165,7 +166,7 @@ def replay_seconds(config: TrainConfig, iterations: int = 20) -> tuple[float, fl
             draws = jax.vmap(buffer.draw, in_axes=(None, 0))(state, jax.random.split(k, updates))
 
             def one(state, draw):
-                batch = gather(state, draw.indices)
+                batch = expand(gather(state, draw.indices), params)  # as the trainer reads it
                 total = sum(x.sum() for x in jax.tree.leaves(batch))
                 return buffer.set_priorities(state, draw.indices, jnp.ones(draw.indices.shape)), total
 

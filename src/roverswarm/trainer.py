@@ -4,8 +4,10 @@ Shape legend: S seeds, E parallel environments per seed, T steps per episode (25
 N agents, K = T * E transitions per iteration, U = K / update_every updates per iteration.
 
 One *iteration* runs, for every seed at once (vmapped): E fresh episodes of T steps with
-exploration noise, their K transitions into the replay, then U updates of every agent (once
-the replay holds ``warmup`` transitions). A *chunk* is ``log_every / E`` iterations in one
+exploration noise, their K transitions into the replay (compact records: the rovers' states
+and the layout, from which each update's batch rebuilds its observations, see
+:mod:`roverswarm.buffers.compact`), then U updates of every agent (once the replay holds
+``warmup`` transitions). A *chunk* is ``log_every / E`` iterations in one
 ``lax.scan``: one jitted call per 1000 episodes. The Python loop around the chunks only logs,
 checkpoints and draws progress. The number of updates per environment step is the same
 whatever E is: one update of every agent per ``update_every`` environment steps.
@@ -41,12 +43,12 @@ from roverswarm.buffers.base import (
     Buffer,
     BufferState,
     Draw,
-    Transition,
     gather,
     importance_weights,
     newest_fraction,
     sample_recent,
 )
+from roverswarm.buffers.compact import compact, example_record, expand
 from roverswarm.config import TrainConfig, config_from_json, config_to_json, fields_by_name, validate, with_mission_text
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, reset, step_env
 from roverswarm.errors import RunStopped, require
@@ -72,18 +74,6 @@ from roverswarm.runs import (
 # ----------------------------------------------------------------------------- jitted core
 
 
-def example_transition(config: TrainConfig, params: EnvParams) -> Transition:
-    n, o = params.num_rovers, observation_size(params)
-    return Transition(
-        obs=jnp.zeros((n, o)),
-        actions=jnp.zeros((n, ACTION_SIZE)),
-        rewards=jnp.zeros((n,)),
-        next_obs=jnp.zeros((n, o)),
-        terminated=jnp.zeros((), bool),
-        policy=jnp.zeros((n,), jnp.int32) if config.learner.ensemble > 1 else None,
-    )
-
-
 def run_buffer(config: TrainConfig, params: EnvParams) -> Buffer:
     """The replay of ``config``, with one partition per sub-policy of every agent if K > 1.
     It never holds more than the run's own transitions (``--episodes`` x episode length per
@@ -96,7 +86,8 @@ def run_buffer(config: TrainConfig, params: EnvParams) -> Buffer:
 
 def init_runner(config: TrainConfig, params: EnvParams, buffer: Buffer) -> Runner:
     """Fresh networks and empty replays for every seed."""
-    buffers = jax.vmap(lambda _: buffer.init(example_transition(config, params)))(jnp.arange(config.seeds))
+    example = example_record(params, config.learner.ensemble)
+    buffers = jax.vmap(lambda _: buffer.init(example))(jnp.arange(config.seeds))
     sizes = (params.num_rovers, observation_size(params))
     return start_runner(config, lambda key: init_learner(key, config.learner, *sizes), buffers)
 
@@ -113,8 +104,9 @@ def collect(config: TrainConfig, params: EnvParams, learner: LearnerState, key: 
     """E episodes of one seed with Gaussian exploration noise of std ``noise_std``; with
     ensembles, every agent runs one sub-policy per episode, drawn uniformly in each environment.
 
-    Returns transitions [T, E, ...] and per-episode stats [E] (reward summed over agents and
-    steps, per-agent rewards [E, N], collisions, trap contacts, final coverage distance).
+    Returns the replay's compact records [T, E, ...], the observations [T, E, N, O] the actors
+    saw and per-episode stats [E] (reward summed over agents and steps, per-agent rewards
+    [E, N], collisions, trap contacts, final coverage distance).
     """
     k_reset, k_steps = jax.random.split(key)
     obs, state = jax.vmap(reset, in_axes=(0, None))(jax.random.split(k_reset, config.num_envs), params)
@@ -127,38 +119,45 @@ def collect(config: TrainConfig, params: EnvParams, learner: LearnerState, key: 
         obs, state = carry
         noise = noise_std * jax.random.normal(step_key, (config.num_envs, params.num_rovers, ACTION_SIZE))
         actions = jnp.clip(act(config.learner, learner.actor, obs, policy, learner.obs_norm) + noise, -1.0, 1.0)
-        next_obs, state, rewards, terminated, _, info = jax.vmap(step_env, in_axes=(0, 0, None))(state, actions, params)
-        transition = Transition(
-            obs=obs, actions=actions, rewards=rewards, next_obs=next_obs, terminated=terminated, policy=policy
+        next_obs, next_state, rewards, terminated, _, info = jax.vmap(step_env, in_axes=(0, 0, None))(
+            state, actions, params
         )
+        record = compact(state, next_state, actions, rewards, terminated, policy)
         counts = contact_counts(info)
         stats = (counts["collisions"], counts["trap_contacts"], info["coverage_distance"])
-        return (next_obs, state), (transition, stats)
+        return (next_obs, next_state), (record, obs, stats)
 
-    _, (transitions, (collisions, traps, coverage)) = jax.lax.scan(
+    _, (records, observations, (collisions, traps, coverage)) = jax.lax.scan(
         body, (obs, state), jax.random.split(k_steps, params.max_steps)
     )
     episode = {
-        "episode_reward": transitions.rewards.sum(axis=(0, 2)),
-        "agent_rewards": transitions.rewards.sum(axis=0),
+        "episode_reward": records.rewards.sum(axis=(0, 2)),
+        "agent_rewards": records.rewards.sum(axis=0),
         "collisions": collisions.sum(axis=0),
         "trap_contacts": traps.sum(axis=0),
         "coverage_distance": coverage[-1],
     }
-    return transitions, episode
+    return records, observations, episode
 
 
 def learn(
-    config: TrainConfig, buffer: Buffer, learner: LearnerState, buffer_state: BufferState, key: jax.Array, draw: Draw
+    config: TrainConfig,
+    params: EnvParams,
+    buffer: Buffer,
+    learner: LearnerState,
+    buffer_state: BufferState,
+    key: jax.Array,
+    draw: Draw,
 ):
     """One update of every agent of one seed on the transitions of ``draw``, drawn from its
-    replay; the sampled TD losses go back to it. ``key`` draws the recent batch of inference.
+    replay (observations rebuilt from the compact records); the sampled TD losses go back to
+    it. ``key`` draws the recent batch of inference.
 
     Info per agent [N] (the update's losses and Q; with --infer-policies the approximations'
     error before the update) or per sampling group [N * K] (what was sampled: its mean and
     max TD loss, and the fraction drawn from the newest 10% of the replay). A group with an
     empty partition gets zero weights, so it changes nothing."""
-    batch = gather(buffer_state, draw.indices)
+    batch = expand(gather(buffer_state, draw.indices), params)
     weights = importance_weights(draw) if config.buffer.importance_weights else jnp.ones(draw.probabilities.shape)
     weights = weights * (draw.population > 0)[:, None]
     error = recent = None
@@ -167,6 +166,7 @@ def learn(
         recent = sample_recent(
             buffer_state, jax.random.fold_in(key, 1), config.learner.infer_window, config.buffer.batch_size
         )
+        recent = expand(recent, params)
     learner, info = update(config.learner, learner, batch, weights, recent, jax.random.fold_in(key, 2))
     if error is not None:
         info["infer_error"] = error
@@ -184,11 +184,13 @@ def iteration(config: TrainConfig, params: EnvParams, buffer: Buffer, runner: Ru
     """E episodes per seed, their transitions into the replay, then U updates per seed."""
     keys = jax.vmap(lambda k: jax.random.split(k, 3))(runner.key)  # [S, 3, 2]
     noise_std = noise_scale(config, runner.episodes)
-    transitions, episode = jax.vmap(partial(collect, config, params), in_axes=(0, 0, None))(
+    records, observations, episode = jax.vmap(partial(collect, config, params), in_axes=(0, 0, None))(
         runner.learner, keys[:, 0], noise_std
     )
-    flat = jax.tree.map(lambda x: x.reshape(x.shape[0], -1, *x.shape[3:]), transitions)  # [S, K, ...]
-    learner = jax.vmap(partial(observe_batch, config.learner))(runner.learner, flat.obs)
+    flat, flat_obs = jax.tree.map(
+        lambda x: x.reshape(x.shape[0], -1, *x.shape[3:]), (records, observations)
+    )  # [S, K, ...]
+    learner = jax.vmap(partial(observe_batch, config.learner))(runner.learner, flat_obs)
     buffer_state = jax.vmap(buffer.add)(runner.buffer, flat)
     episodes = runner.episodes + config.num_envs
     transitions_seen = episodes * params.max_steps
@@ -197,7 +199,7 @@ def iteration(config: TrainConfig, params: EnvParams, buffer: Buffer, runner: Ru
     def do_updates(learner, buffer_state, key):
         def one(carry, xs):
             learner, buffer_state = carry
-            learner, buffer_state, info = jax.vmap(partial(learn, config, buffer))(learner, buffer_state, *xs)
+            learner, buffer_state, info = jax.vmap(partial(learn, config, params, buffer))(learner, buffer_state, *xs)
             return (learner, buffer_state), info
 
         update_keys = jax.vmap(lambda k: jax.random.split(k, num_updates), out_axes=1)(key)  # [U, S]
@@ -320,7 +322,7 @@ def replay_bytes(config: TrainConfig, params: EnvParams) -> tuple[int, int, int]
     if config.learner.algo in ON_POLICY:
         return 0, 0, 0
     capacity = run_buffer(config, params).capacity
-    per_transition = sum(x.nbytes for x in jax.tree.leaves(example_transition(config, params)))
+    per_transition = sum(x.nbytes for x in jax.tree.leaves(example_record(params, config.learner.ensemble)))
     return config.seeds * capacity * per_transition, capacity, per_transition
 
 

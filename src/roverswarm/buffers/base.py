@@ -7,14 +7,17 @@ O observation size, A action size.
 
 A :class:`Buffer` is a frozen record of pure functions (Flashbax style)::
 
-    init(example)                      -> BufferState   (example: one Transition, no batch axis)
+    init(example)                      -> BufferState   (example: one record, no batch axis)
     add(state, transitions [T, ...])   -> BufferState   (a ring: the oldest are overwritten)
     draw(state, key)                   -> Draw          (G independent batches of B indices, one per group)
     set_priorities(state, idx, losses) -> BufferState   (idx, losses [G, B]; no-op if uniform)
     refresh(state, due)                -> BufferState   (re-rank if ``due``; no-op if uniform)
 
 and ``sample(state, key)`` -> :class:`Sample`, a draw with its transitions gathered, so the
-learner never knows which kind it has. A draw reads nothing that ``set_priorities`` writes
+learner never knows which kind it has. A record is any pytree of arrays with a ``policy``
+field: a :class:`Transition`, or the trainer's
+:class:`~roverswarm.buffers.compact.CompactTransition`, from which the observations are
+rebuilt after the gather. A draw reads nothing that ``set_priorities`` writes
 (written-back losses count from the next ``refresh``), so the trainer draws the batches of
 all the updates between two calls of ``add`` at once, in one vectorised call; the index arithmetic
 is then done once per update, not again inside the gather of every field (XLA on CPU fuses

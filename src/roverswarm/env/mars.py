@@ -243,13 +243,20 @@ def observe(state: EnvState, params: EnvParams) -> jax.Array:
 
     The nearest-first view is the same for every permutation of the layout's POIs, traps and
     rovers, so a network need not learn each assignment of indices to places."""
-    pos = state.rover_pos
-    groups = [state.poi_pos[None] - pos[:, None], state.trap_pos[None] - pos[:, None]]
-    groups.append(pos[other_rovers(params.num_rovers)] - pos[:, None])  # [N, N - 1, 2]
+    return observe_positions(state.rover_pos, state.rover_vel, state.poi_pos, state.trap_pos, params)
+
+
+def observe_positions(
+    rover_pos: jax.Array, rover_vel: jax.Array, poi_pos: jax.Array, trap_pos: jax.Array, params: EnvParams
+) -> jax.Array:
+    """:func:`observe` from the only parts of the state it reads (rovers [N, 2], POIs [P, 2],
+    traps [T, 2]): what the compact replay keeps to rebuild observations."""
+    groups = [poi_pos[None] - rover_pos[:, None], trap_pos[None] - rover_pos[:, None]]
+    groups.append(rover_pos[other_rovers(params.num_rovers)] - rover_pos[:, None])  # [N, N - 1, 2]
     if params.nearest_first:
         groups = [_nearest_first(g) for g in groups]
     flat = [g.reshape(params.num_rovers, -1) for g in groups]
-    return jnp.concatenate([state.rover_vel, pos, *flat], axis=-1)
+    return jnp.concatenate([rover_vel, rover_pos, *flat], axis=-1)
 
 
 def _nearest_first(rel: jax.Array) -> jax.Array:
