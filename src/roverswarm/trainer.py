@@ -39,16 +39,8 @@ from roverswarm.algos.learner import ON_POLICY, LearnerState, act, init_learner,
 from roverswarm.algos.maddpg import inference_error, update
 from roverswarm.algos.ppo import PPOState
 from roverswarm.buffers import make_buffer
-from roverswarm.buffers.base import (
-    Buffer,
-    BufferState,
-    Draw,
-    gather,
-    importance_weights,
-    newest_fraction,
-    sample_recent,
-)
-from roverswarm.buffers.compact import compact, example_record, expand
+from roverswarm.buffers import compact
+from roverswarm.buffers.base import Buffer, BufferState, Draw, importance_weights, newest_fraction, recent_indices
 from roverswarm.config import TrainConfig, config_from_json, config_to_json, fields_by_name, validate, with_mission_text
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, reset, step_env
 from roverswarm.errors import RunStopped, require
@@ -86,8 +78,7 @@ def run_buffer(config: TrainConfig, params: EnvParams) -> Buffer:
 
 def init_runner(config: TrainConfig, params: EnvParams, buffer: Buffer) -> Runner:
     """Fresh networks and empty replays for every seed."""
-    example = example_record(params, config.learner.ensemble)
-    buffers = jax.vmap(lambda _: buffer.init(example))(jnp.arange(config.seeds))
+    buffers = jax.vmap(lambda _: compact.init(buffer, params, config.num_envs))(jnp.arange(config.seeds))
     sizes = (params.num_rovers, observation_size(params))
     return start_runner(config, lambda key: init_learner(key, config.learner, *sizes), buffers)
 
@@ -104,9 +95,10 @@ def collect(config: TrainConfig, params: EnvParams, learner: LearnerState, key: 
     """E episodes of one seed with Gaussian exploration noise of std ``noise_std``; with
     ensembles, every agent runs one sub-policy per episode, drawn uniformly in each environment.
 
-    Returns the replay's compact records [T, E, ...], the observations [T, E, N, O] the actors
-    saw and per-episode stats [E] (reward summed over agents and steps, per-agent rewards
-    [E, N], collisions, trap contacts, final coverage distance).
+    Returns the episodes for the replay (:class:`~roverswarm.buffers.compact.Collected`), the
+    observations [T, E, N, O] the actors saw and per-episode stats [E] (reward summed over
+    agents and steps, per-agent rewards [E, N], collisions, trap contacts, final coverage
+    distance).
     """
     k_reset, k_steps = jax.random.split(key)
     obs, state = jax.vmap(reset, in_axes=(0, None))(jax.random.split(k_reset, config.num_envs), params)
@@ -122,22 +114,25 @@ def collect(config: TrainConfig, params: EnvParams, learner: LearnerState, key: 
         next_obs, next_state, rewards, terminated, _, info = jax.vmap(step_env, in_axes=(0, 0, None))(
             state, actions, params
         )
-        record = compact(state, next_state, actions, rewards, terminated, policy)
         counts = contact_counts(info)
         stats = (counts["collisions"], counts["trap_contacts"], info["coverage_distance"])
-        return (next_obs, next_state), (record, obs, stats)
+        steps = (compact.rovers_of(state), actions, rewards, terminated)
+        return (next_obs, next_state), (steps, obs, stats)
 
-    _, (records, observations, (collisions, traps, coverage)) = jax.lax.scan(
+    (_, last), ((rovers, actions, rewards, terminated), observations, (collisions, traps, coverage)) = jax.lax.scan(
         body, (obs, state), jax.random.split(k_steps, params.max_steps)
     )
+    collected = compact.Collected(
+        rovers, actions, rewards, terminated, compact.layout_of(state), compact.rovers_of(last), policy
+    )
     episode = {
-        "episode_reward": records.rewards.sum(axis=(0, 2)),
-        "agent_rewards": records.rewards.sum(axis=0),
+        "episode_reward": rewards.sum(axis=(0, 2)),
+        "agent_rewards": rewards.sum(axis=0),
         "collisions": collisions.sum(axis=0),
         "trap_contacts": traps.sum(axis=0),
         "coverage_distance": coverage[-1],
     }
-    return records, observations, episode
+    return collected, observations, episode
 
 
 def learn(
@@ -157,16 +152,18 @@ def learn(
     error before the update) or per sampling group [N * K] (what was sampled: its mean and
     max TD loss, and the fraction drawn from the newest 10% of the replay). A group with an
     empty partition gets zero weights, so it changes nothing."""
-    batch = expand(gather(buffer_state, draw.indices), params)
+    expand = partial(compact.expand, buffer_state, params=params, num_envs=config.num_envs)
+    batch = expand(draw.indices)
     weights = importance_weights(draw) if config.buffer.importance_weights else jnp.ones(draw.probabilities.shape)
     weights = weights * (draw.population > 0)[:, None]
     error = recent = None
     if config.learner.infer_policies:
         error = inference_error(config.learner, learner, batch)
-        recent = sample_recent(
-            buffer_state, jax.random.fold_in(key, 1), config.learner.infer_window, config.buffer.batch_size
+        recent = expand(
+            recent_indices(
+                buffer_state, jax.random.fold_in(key, 1), config.learner.infer_window, config.buffer.batch_size
+            )
         )
-        recent = expand(recent, params)
     learner, info = update(config.learner, learner, batch, weights, recent, jax.random.fold_in(key, 2))
     if error is not None:
         info["infer_error"] = error
@@ -184,14 +181,12 @@ def iteration(config: TrainConfig, params: EnvParams, buffer: Buffer, runner: Ru
     """E episodes per seed, their transitions into the replay, then U updates per seed."""
     keys = jax.vmap(lambda k: jax.random.split(k, 3))(runner.key)  # [S, 3, 2]
     noise_std = noise_scale(config, runner.episodes)
-    records, observations, episode = jax.vmap(partial(collect, config, params), in_axes=(0, 0, None))(
+    collected, observations, episode = jax.vmap(partial(collect, config, params), in_axes=(0, 0, None))(
         runner.learner, keys[:, 0], noise_std
     )
-    flat, flat_obs = jax.tree.map(
-        lambda x: x.reshape(x.shape[0], -1, *x.shape[3:]), (records, observations)
-    )  # [S, K, ...]
+    flat_obs = observations.reshape(observations.shape[0], -1, *observations.shape[3:])  # [S, K, N, O]
     learner = jax.vmap(partial(observe_batch, config.learner))(runner.learner, flat_obs)
-    buffer_state = jax.vmap(buffer.add)(runner.buffer, flat)
+    buffer_state = jax.vmap(partial(compact.add, buffer))(runner.buffer, collected)
     episodes = runner.episodes + config.num_envs
     transitions_seen = episodes * params.max_steps
     num_updates = config.num_envs * params.max_steps // config.update_every
@@ -318,12 +313,15 @@ Python process): a reproduce --quick grid peaks near 2.1 GB, replays included.""
 
 
 def replay_bytes(config: TrainConfig, params: EnvParams) -> tuple[int, int, int]:
-    """(bytes, transitions, bytes per transition) of every seed's replay of ``config`` (0 for PPO)."""
+    """(bytes, transitions, bytes per transition) of every seed's replay of ``config`` (0 for PPO):
+    the stored transitions and episodes, and the sampling state of the ranked replay and the
+    ensembles' partitions, from their shapes (nothing is allocated)."""
     if config.learner.algo in ON_POLICY:
         return 0, 0, 0
-    capacity = run_buffer(config, params).capacity
-    per_transition = sum(x.nbytes for x in jax.tree.leaves(example_record(params, config.learner.ensemble)))
-    return config.seeds * capacity * per_transition, capacity, per_transition
+    buffer = run_buffer(config, params)
+    shapes = jax.eval_shape(lambda: compact.init(buffer, params, config.num_envs))
+    per_transition = math.ceil(compact.nbytes(shapes) / buffer.capacity)
+    return config.seeds * buffer.capacity * per_transition, buffer.capacity, per_transition
 
 
 def run_memory(config: TrainConfig) -> int:

@@ -59,6 +59,7 @@ class BufferState:
     size: jax.Array  # [] int32, transitions stored (<= C)
     extra: Any = None  # implementation state (priorities of the ranked buffer)
     partitions: Any = None  # Partitions of the policy ensembles' groups (K > 1 only)
+    episodes: Any = None  # the compact replay's episode table (:mod:`roverswarm.buffers.compact`)
 
 
 @struct.dataclass
@@ -149,10 +150,15 @@ def gather(state: BufferState, indices: jax.Array) -> Transition:
     return jax.tree.map(lambda d: d[indices], state.data)
 
 
+def recent_indices(state: BufferState, key: jax.Array, window: int, batch_size: int) -> jax.Array:
+    """[B] slots drawn uniformly from the newest ``window`` stored transitions."""
+    ages = jax.random.randint(key, (batch_size,), 0, jnp.clip(state.size, 1, window))
+    return nth_stored(state, ages)
+
+
 def sample_recent(state: BufferState, key: jax.Array, window: int, batch_size: int) -> Transition:
     """``batch_size`` transitions [B, ...] drawn uniformly from the newest ``window`` stored ones."""
-    ages = jax.random.randint(key, (batch_size,), 0, jnp.clip(state.size, 1, window))
-    return gather(state, nth_stored(state, ages))
+    return gather(state, recent_indices(state, key, window, batch_size))
 
 
 def importance_weights(draw: Draw) -> jax.Array:

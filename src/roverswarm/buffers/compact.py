@@ -1,107 +1,166 @@
-"""The compact replay record: what a transition's observations are made of, not the observations.
+"""The trainer's compact replay: what a transition's observations are made of, each stored once.
 
-Shape legend: N rovers, P POIs, T traps, O observation size, A action size.
+Shape legend: C capacity (transitions), E episodes added at once (parallel environments),
+T steps per episode, L = E * ceil(C / (T * E)) episode slots, N rovers, P POIs, X = P + traps,
+O observation size, A action size.
 
 A rover's observation (:func:`~roverswarm.env.mars.observe`) lists every POI, trap and other
-rover relative to it, so the N observations of a step hold O = 4 + 2P + 2T + 2(N - 1) numbers
-each, N * O in all, where the environment itself has only every rover's velocity and position
-(4N numbers) and the episode's layout (2P + 2T). The trainer's replay stores a
-:class:`CompactTransition` (the rovers before and after the step, the layout, actions,
-rewards), and :func:`expand` rebuilds the :class:`~roverswarm.buffers.base.Transition` a learner
-reads with the environment's own observation function, inside the jitted update, for the
-sampled transitions only. Observations depend on nothing else (not on time, failures or
-what was observed), so the rebuilt batch is the stored one, bit for bit
-(``tests/test_compact_replay.py`` checks this against a replay of full observations, for every
-replay kind). At N = 5 a transition takes 301 bytes instead of 1,341; at N = 10, 601 instead
-of 5,081.
+rover relative to it, so a step's N observations hold N * O numbers, O = 4 + 2X + 2(N - 1),
+where the environment itself has only every rover's velocity and position (4N
+numbers) and the episode's layout (2X, the same for all T steps); and a transition's next
+observation is the next transition's observation. The replay therefore stores:
+
+* per transition (:class:`Step`, in the ring of C): every rover's velocity and position
+  before the step, the actions, rewards, ``terminated``, the sub-policies of policy ensembles,
+  and ``where``: the episode's slot in the episode table and the step's index in it;
+* per episode (:class:`Episodes`, a ring of L slots): the layout (POIs, then traps) and the
+  rovers after the episode's last step.
+
+The trainer adds whole episodes, E at a time, time-major (transition ``t * E + e`` of an add is
+step t of episode e), so the next step of the transition in slot j is in slot ``(j + E) mod C``,
+written in the same add and overwritten only after j; the last step's next state is the
+episode's. The transitions still stored come from the newest ``ceil(C / (T * E))`` adds, whose
+episodes the table of L slots holds. :func:`expand` rebuilds the
+:class:`~roverswarm.buffers.base.Transition` a learner reads, inside the jitted update and for
+the sampled transitions only, with the environment's own observation function. Observations
+depend on nothing else (not on time, failures or what was observed), so the batches are the
+stored ones bit for bit (``tests/test_compact_replay.py`` checks this against a replay of
+full observations for every replay kind). Bytes per transition: 151 instead of 1,341 at N = 5,
+298 instead of 5,081 at N = 10 (``benchmarks/replay_memory.py``).
 
 The buffers store any record with a ``policy`` field, so every replay kind (uniform, ranked,
-partitioned for policy ensembles) keeps this one unchanged.
+partitioned for policy ensembles) keeps ``Step`` unchanged; the episode table rides in
+:attr:`~roverswarm.buffers.base.BufferState.episodes`.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 from flax import struct
 
-from roverswarm.buffers.base import Transition
+from roverswarm.buffers.base import Buffer, BufferState, Transition, gather
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, EnvState, observe_positions
 
 
 @struct.dataclass
-class CompactTransition:
-    """One step of the swarm, compact (leading axes as the context says)."""
+class Step:
+    """One stored transition (leading axes as the context says)."""
 
     rovers: jax.Array  # [..., N, 4] every rover's velocity and position before the step
-    next_rovers: jax.Array  # [..., N, 4] the same after the step (before any reset)
-    layout: jax.Array  # [..., P + T, 2] the episode's POIs, then its traps
     actions: jax.Array  # [..., N, A]
     rewards: jax.Array  # [..., N]
     terminated: jax.Array  # [...] bool; a truncation is not a termination
+    where: jax.Array  # [...] int32, episode slot * T + step index in the episode
     policy: Any = None  # [..., N] int32 sub-policy each agent ran (policy ensembles only)
 
 
-def _rovers(state: EnvState) -> jax.Array:
+@struct.dataclass
+class Episodes:
+    """The episode table: what every step of an episode shares."""
+
+    layout: jax.Array  # [L, X, 2] the episode's POIs, then its traps
+    final: jax.Array  # [L, N, 4] every rover's velocity and position after the last step
+    position: jax.Array  # [] int32, the slot of the next episode added
+
+
+@struct.dataclass
+class Collected:
+    """E episodes of T steps as collected (time-major), before they are stored."""
+
+    rovers: jax.Array  # [T, E, N, 4] before each step
+    actions: jax.Array  # [T, E, N, A]
+    rewards: jax.Array  # [T, E, N]
+    terminated: jax.Array  # [T, E]
+    layout: jax.Array  # [E, X, 2]
+    final: jax.Array  # [E, N, 4] after the last step
+    policy: Any = None  # [E, N] int32 (policy ensembles only)
+
+
+def rovers_of(state: EnvState) -> jax.Array:
+    """[..., N, 4]: every rover's velocity and position."""
     return jnp.concatenate([state.rover_vel, state.rover_pos], axis=-1)
 
 
-def compact(
-    state: EnvState,
-    next_state: EnvState,
-    actions: jax.Array,
-    rewards: jax.Array,
-    terminated: jax.Array,
-    policy: jax.Array | None = None,
-) -> CompactTransition:
-    """The record of the step from ``state`` to ``next_state`` (any leading axes, the same on all)."""
-    return CompactTransition(
-        rovers=_rovers(state),
-        next_rovers=_rovers(next_state),
-        layout=jnp.concatenate([state.poi_pos, state.trap_pos], axis=-2),
-        actions=actions,
-        rewards=rewards,
-        terminated=terminated,
-        policy=policy,
+def layout_of(state: EnvState) -> jax.Array:
+    """[..., X, 2]: the POIs, then the traps."""
+    return jnp.concatenate([state.poi_pos, state.trap_pos], axis=-2)
+
+
+def episode_slots(capacity: int, num_envs: int, max_steps: int) -> int:
+    """L: episode slots that cover every transition a ring of ``capacity`` can still hold."""
+    return num_envs * math.ceil(capacity / (num_envs * max_steps))
+
+
+def init(buffer: Buffer, params: EnvParams, num_envs: int) -> BufferState:
+    """An empty compact replay of ``buffer``'s kind for ``params``'s swarm."""
+    n = params.num_rovers
+    example = Step(
+        rovers=jnp.zeros((n, 4)),
+        actions=jnp.zeros((n, ACTION_SIZE)),
+        rewards=jnp.zeros((n,)),
+        terminated=jnp.zeros((), bool),
+        where=jnp.zeros((), jnp.int32),
+        policy=jnp.zeros((n,), jnp.int32) if buffer.num_policies > 1 else None,
     )
+    slots = episode_slots(buffer.capacity, num_envs, params.max_steps)
+    episodes = Episodes(
+        layout=jnp.zeros((slots, params.num_pois + params.num_traps, 2)),
+        final=jnp.zeros((slots, n, 4)),
+        position=jnp.zeros((), jnp.int32),
+    )
+    return buffer.init(example).replace(episodes=episodes)
 
 
-def expand(record: CompactTransition, params: EnvParams) -> Transition:
-    """The :class:`Transition` of ``record`` (any leading axes): observations rebuilt by the
-    environment's observation function from the rovers and the layout."""
-    lead = record.rewards.shape[:-1]
+def add(buffer: Buffer, state: BufferState, batch: Collected) -> BufferState:
+    """Store E whole episodes: their steps in the ring, their layouts and last states in the table."""
+    steps, envs = batch.rewards.shape[:2]
+    table = state.episodes
+    slots = (table.position + jnp.arange(envs)) % table.layout.shape[0]  # [E]
+    where = slots[None, :] * steps + jnp.arange(steps)[:, None]  # [T, E]
+    policy = None if batch.policy is None else jnp.broadcast_to(batch.policy, (steps, *batch.policy.shape))
+    records = Step(batch.rovers, batch.actions, batch.rewards, batch.terminated, where, policy)
+    state = buffer.add(state, jax.tree.map(lambda x: x.reshape(steps * envs, *x.shape[2:]), records))
+    table = Episodes(
+        layout=table.layout.at[slots].set(batch.layout),
+        final=table.final.at[slots].set(batch.final),
+        position=(table.position + envs) % table.layout.shape[0],
+    )
+    return state.replace(episodes=table)
 
-    def observations(rovers: jax.Array, layout: jax.Array) -> jax.Array:
-        rovers = rovers.reshape(-1, *rovers.shape[-2:])
-        layout = layout.reshape(-1, *layout.shape[-2:])
-        poi, trap = layout[:, : params.num_pois], layout[:, params.num_pois :]
+
+def expand(state: BufferState, indices: jax.Array, params: EnvParams, num_envs: int) -> Transition:
+    """The transitions at ring ``indices`` (any shape), observations rebuilt."""
+    step = gather(state, indices)
+    capacity = state.data.rovers.shape[0]
+    slot, t = jnp.divmod(step.where, params.max_steps)
+    following = state.data.rovers[(indices + num_envs) % capacity]  # the episode's next step
+    last = (t == params.max_steps - 1)[..., None, None]
+    next_rovers = jnp.where(last, state.episodes.final[slot], following)
+    layout = state.episodes.layout[slot]
+    lead = indices.shape
+
+    def observations(rovers: jax.Array) -> jax.Array:
+        rovers, items = rovers.reshape(-1, *rovers.shape[-2:]), layout.reshape(-1, *layout.shape[-2:])
+        poi, trap = items[:, : params.num_pois], items[:, params.num_pois :]
         obs = jax.vmap(observe_positions, in_axes=(0, 0, 0, 0, None))(
             rovers[..., 2:], rovers[..., :2], poi, trap, params
         )
         return obs.reshape(*lead, *obs.shape[-2:])
 
     return Transition(
-        obs=observations(record.rovers, record.layout),
-        actions=record.actions,
-        rewards=record.rewards,
-        next_obs=observations(record.next_rovers, record.layout),
-        terminated=record.terminated,
-        policy=record.policy,
+        obs=observations(step.rovers),
+        actions=step.actions,
+        rewards=step.rewards,
+        next_obs=observations(next_rovers),
+        terminated=step.terminated,
+        policy=step.policy,
     )
 
 
-def example_record(params: EnvParams, ensemble: int = 1) -> CompactTransition:
-    """A zero record of one step of ``params``'s swarm (no batch axes): the replay's template;
-    ``policy`` is kept with policy ensembles (``ensemble`` > 1)."""
-    n, items = params.num_rovers, params.num_pois + params.num_traps
-    return CompactTransition(
-        rovers=jnp.zeros((n, 4)),
-        next_rovers=jnp.zeros((n, 4)),
-        layout=jnp.zeros((items, 2)),
-        actions=jnp.zeros((n, ACTION_SIZE)),
-        rewards=jnp.zeros((n,)),
-        terminated=jnp.zeros((), bool),
-        policy=jnp.zeros((n,), jnp.int32) if ensemble > 1 else None,
-    )
+def nbytes(tree: Any) -> int:
+    """Bytes of every array of ``tree`` (arrays or :func:`jax.eval_shape` shapes)."""
+    return sum(math.prod(x.shape) * jnp.dtype(x.dtype).itemsize for x in jax.tree.leaves(tree))
