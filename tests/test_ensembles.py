@@ -15,7 +15,7 @@ import pytest
 from scipy import stats
 
 from roverswarm.buffers.ranked import ranked_buffer
-from roverswarm.buffers.base import Transition, importance_weights, sample_recent
+from roverswarm.buffers.base import Transition, gather, importance_weights, recent_indices
 from roverswarm.buffers.uniform import uniform_buffer
 from test_ranked import N, transitions
 from roverswarm.cli import main
@@ -186,7 +186,7 @@ def test_recent_batches_come_uniformly_from_the_newest_window(added, window, exp
     state = buffer.init(jax.tree.map(lambda x: x[0], transitions(0, 1)))
     for start in range(0, added, 10):
         state = buffer.add(state, transitions(start, 10))
-    draw = jax.jit(lambda key: sample_recent(state, key, window, 400).obs[:, 0, 0])
+    draw = jax.jit(lambda key: gather(state, recent_indices(state, key, window, 400)).obs[:, 0, 0])
     numbers = np.concatenate([np.asarray(draw(jax.random.PRNGKey(seed))) for seed in range(5)]).astype(int)
     counts = np.bincount(numbers - expected.start, minlength=len(expected))
     assert set(numbers) == set(expected) and len(counts) == len(expected)

@@ -38,8 +38,7 @@ from roverswarm import onpolicy
 from roverswarm.algos.learner import ON_POLICY, LearnerState, act, init_learner, observe_batch
 from roverswarm.algos.maddpg import inference_error, update
 from roverswarm.algos.ppo import PPOState
-from roverswarm.buffers import make_buffer
-from roverswarm.buffers import compact
+from roverswarm.buffers import compact, make_buffer
 from roverswarm.buffers.base import Buffer, BufferState, Draw, importance_weights, newest_fraction, recent_indices
 from roverswarm.config import TrainConfig, config_from_json, config_to_json, fields_by_name, validate, with_mission_text
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, reset, step_env

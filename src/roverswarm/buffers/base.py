@@ -15,8 +15,8 @@ A :class:`Buffer` is a frozen record of pure functions (Flashbax style)::
 
 and ``sample(state, key)`` -> :class:`Sample`, a draw with its transitions gathered, so the
 learner never knows which kind it has. A record is any pytree of arrays with a ``policy``
-field: a :class:`Transition`, or the trainer's
-:class:`~roverswarm.buffers.compact.CompactTransition`, from which the observations are
+field: a :class:`Transition`, or the trainer's compact :class:`~roverswarm.buffers.compact.Step`,
+from which (with the episode table in :attr:`BufferState.episodes`) the observations are
 rebuilt after the gather. A draw reads nothing that ``set_priorities`` writes
 (written-back losses count from the next ``refresh``), so the trainer draws the batches of
 all the updates between two calls of ``add`` at once, in one vectorised call; the index arithmetic
@@ -154,11 +154,6 @@ def recent_indices(state: BufferState, key: jax.Array, window: int, batch_size: 
     """[B] slots drawn uniformly from the newest ``window`` stored transitions."""
     ages = jax.random.randint(key, (batch_size,), 0, jnp.clip(state.size, 1, window))
     return nth_stored(state, ages)
-
-
-def sample_recent(state: BufferState, key: jax.Array, window: int, batch_size: int) -> Transition:
-    """``batch_size`` transitions [B, ...] drawn uniformly from the newest ``window`` stored ones."""
-    return gather(state, recent_indices(state, key, window, batch_size))
 
 
 def importance_weights(draw: Draw) -> jax.Array:
