@@ -58,8 +58,8 @@ import jax.numpy as jnp
 from roverswarm import onpolicy
 from roverswarm.algos.learner import ON_POLICY, init_learner
 from roverswarm.algos.maddpg import update
-from roverswarm.buffers.base import Transition, gather
-from roverswarm.buffers.compact import example_record, expand
+from roverswarm.buffers.base import Transition
+from roverswarm.buffers import compact
 from roverswarm.env.mars import ACTION_SIZE, observation_size
 from roverswarm.jaxcache import enable_compilation_cache
 from roverswarm.config import PRESETS, TrainConfig, validate, with_options
@@ -152,7 +152,7 @@ def replay_seconds(config: TrainConfig, iterations: int = 20) -> tuple[float, fl
     params = validate(config)
     buffer = run_buffer(config, params)
     updates = config.num_envs * params.max_steps // config.update_every  # per iteration
-    state = jax.jit(partial(fill, buffer))(buffer.init(example_record(params, config.learner.ensemble)))
+    state = jax.jit(partial(fill, buffer))(compact.init(buffer, params, config.num_envs))
     if state.extra is not None:
         state = state.replace(
             extra=state.extra.replace(loss=jax.random.uniform(jax.random.PRNGKey(1), state.extra.loss.shape))
@@ -166,7 +166,7 @@ def replay_seconds(config: TrainConfig, iterations: int = 20) -> tuple[float, fl
             draws = jax.vmap(buffer.draw, in_axes=(None, 0))(state, jax.random.split(k, updates))
 
             def one(state, draw):
-                batch = expand(gather(state, draw.indices), params)  # as the trainer reads it
+                batch = compact.expand(state, draw.indices, params, config.num_envs)  # as the trainer reads it
                 total = sum(x.sum() for x in jax.tree.leaves(batch))
                 return buffer.set_priorities(state, draw.indices, jnp.ones(draw.indices.shape)), total
 
