@@ -16,11 +16,19 @@ N = 2  # agents: each ranks by its own losses
 DRAWS = 400  # batches per check
 
 
-def reference_probabilities(losses: np.ndarray, alpha: float, beta: float) -> np.ndarray:
-    """Eq. 12-13, normalised: P(i) = (1 - beta) p_i^alpha / sum_j p_j^alpha + beta / M, with
-    p_i the ascending rank of loss i (ties: average rank; +inf is a new, unranked transition)."""
-    ranks = stats.rankdata(losses, method="average")
-    powered = ranks.astype(np.float64) ** alpha
+def reference_probabilities(losses: np.ndarray, alpha: float, beta: float, reading: str = "paper") -> np.ndarray:
+    """Eq. 12-13, normalised: P(i) = (1 - beta) w_i / sum_j w_j + beta / M. ``paper``:
+    w_i = p_i^alpha with p_i the ascending rank of loss i (ties: average rank; +inf is a new,
+    unranked transition, so it ties at the top). ``schaul`` (Schaul et al.'s rank-based
+    replay): w_i = d_i^-alpha with d_i the descending rank among the ranked (finite) losses,
+    and w = 1 (the top priority) for a new one."""
+    if reading == "paper":
+        powered = stats.rankdata(losses, method="average").astype(np.float64) ** alpha
+    else:
+        ranked = np.isfinite(losses)
+        descending = stats.rankdata(-losses[ranked], method="average").astype(np.float64)
+        powered = np.ones(len(losses))
+        powered[ranked] = descending**-alpha
     return (1.0 - beta) * powered / powered.sum() + beta / len(losses)
 
 
@@ -38,9 +46,9 @@ def transitions(first: int, count: int, policy: np.ndarray | None = None) -> Tra
     )
 
 
-def filled(capacity: int, batch_size: int, stored: int, alpha: float, beta: float):
+def filled(capacity: int, batch_size: int, stored: int, alpha: float, beta: float, reading: str = "paper"):
     """A ranked buffer of ``capacity`` holding ``stored`` transitions (slot i holds number i)."""
-    buffer = ranked_buffer(capacity, batch_size, N, alpha, beta)
+    buffer = ranked_buffer(capacity, batch_size, N, alpha, beta, reading=reading)
     example = jax.tree.map(lambda x: x[0], transitions(0, 1))
     return buffer, buffer.add(buffer.init(example), transitions(0, stored))
 
@@ -94,6 +102,31 @@ def test_sampling_follows_eq_12_13(alpha, beta):
     assert_matches(*draw(buffer, with_losses(buffer, state, losses)), expected)
     if alpha == 0.0 or beta == 1.0:
         np.testing.assert_allclose(expected, 1.0 / 100)
+
+
+@pytest.mark.parametrize("alpha, beta", [(0.7, 0.0), (1.5, 0.1), (0.0, 0.2)])
+def test_schaul_sampling_follows_one_over_rank(alpha, beta):
+    """The rank-based prioritised replay of Schaul et al.: P ~ rank^-alpha, rank 1 the largest loss."""
+    rng = np.random.default_rng(10)
+    buffer, state = filled(capacity=128, batch_size=256, stored=100, alpha=alpha, beta=beta, reading="schaul")
+    losses = distinct_losses(rng, 100)
+    expected = np.stack([reference_probabilities(l, alpha, beta, "schaul") for l in losses])
+    assert_matches(*draw(buffer, with_losses(buffer, state, losses)), expected)
+    if alpha > 0:  # the largest loss is the most likely draw, far above the average
+        assert all(expected[a].argmax() == losses[a].argmax() for a in range(N))
+        assert expected[0].max() > 5 / 100
+
+
+@pytest.mark.parametrize("reading", ["paper", "schaul"])
+def test_equal_losses_and_new_transitions_in_each_reading(reading):
+    """Ties share their average rank; after an add, the new transitions sit at the top:
+    tied above the ranked ones (``paper``) or each at the top priority (``schaul``)."""
+    rng = np.random.default_rng(11)
+    buffer, state = filled(capacity=128, batch_size=256, stored=70, alpha=0.7, beta=0.1, reading=reading)
+    losses = np.stack([rng.choice([0.5, 2.0, 8.0, 30.0], size=70) for _ in range(N)])
+    state = buffer.add(with_losses(buffer, state, losses), transitions(70, 30))
+    now = np.concatenate([losses, np.full((N, 30), np.inf)], axis=1)
+    assert_matches(*draw(buffer, state), np.stack([reference_probabilities(l, 0.7, 0.1, reading) for l in now]))
 
 
 def test_equal_losses_share_their_average_rank():
@@ -168,6 +201,20 @@ def test_importance_weights_match_their_definition():
         w = 1.0 / (40 * p)  # w_i = (M P(i))^-1, scaled so the batch's largest weight is 1
         np.testing.assert_allclose(weights[agent], w / w.max(), rtol=1e-4)
     assert weights.max() == pytest.approx(1.0)
+
+
+def test_importance_weights_with_an_exponent_match_their_definition():
+    """Schaul et al.'s w_i = (M P(i))^-e / max_j w_j, here with e = 0.5 on the 1/rank reading."""
+    rng = np.random.default_rng(12)
+    buffer, state = filled(capacity=64, batch_size=32, stored=40, alpha=0.7, beta=0.0, reading="schaul")
+    losses = distinct_losses(rng, 40)
+    sample = buffer.sample(with_losses(buffer, state, losses), jax.random.PRNGKey(4))
+    weights = np.asarray(importance_weights(sample, 0.5))
+    for agent in range(N):
+        p = reference_probabilities(losses[agent], 0.7, 0.0, "schaul")[np.asarray(sample.indices[agent])]
+        w = (40 * p) ** -0.5
+        np.testing.assert_allclose(weights[agent], w / w.max(), rtol=1e-4)
+    np.testing.assert_allclose(importance_weights(sample, 0.0), 1.0)  # exponent 0: no correction
 
 
 def test_the_uniform_buffer_weighs_every_sample_equally():

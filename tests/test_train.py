@@ -188,8 +188,10 @@ def test_non_finite_losses_stop_the_run_and_keep_the_last_good_checkpoint(tiny_c
 
 def test_ranked_replay_is_deterministic_and_resumes_exactly(tiny_config, tmp_path, signal_at_chunk):
     """Same seed => same numbers with the experience sample optimizer, also across a Ctrl-C
-    (checkpoint of losses and sampling table) and a resume."""
-    config = with_options(tiny_config, dict(replay="ranked", refresh_every=10, importance_weights=True))
+    (checkpoint of losses and sampling table) and a resume; here in Schaul's 1/rank reading,
+    with importance weights whose exponent rises from 0.5 over the run."""
+    options = dict(replay="ranked", refresh_every=10, reading="schaul", alpha=0.7, beta=0.0)
+    config = with_options(tiny_config, dict(options, importance_weights=True, importance_exponent=0.5))
     reference = train(config, progress=False)
     disarm = signal_at_chunk(signal.SIGINT)  # Ctrl-C mid-run: the trainer checkpoints and stops
     with pytest.raises(RunStopped, match="interrupted at episode 200"):
@@ -211,6 +213,7 @@ def test_ranked_replay_is_deterministic_and_resumes_exactly(tiny_config, tmp_pat
         (["--replay", "ranked", "--alpha", "-1"], "--alpha must be >= 0, got -1.0"),
         (["--replay", "ranked", "--beta", "1.5"], "--beta must be in [0, 1], got 1.5"),
         (["--replay", "ranked", "--refresh-every", "0"], "--refresh-every must be >= 1, got 0"),
+        (["--importance-exponent", "1.5"], "--importance-exponent must be in [0, 1], got 1.5"),
         (["--noise-decay-episodes", "-5"], "--noise-decay-episodes must be >= 0, got -5"),
     ],
 )

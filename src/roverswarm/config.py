@@ -199,7 +199,12 @@ def validate(config: TrainConfig) -> EnvParams:
     require(learner.algo in ALGOS, f"--algo must be one of {', '.join(ALGOS)}, got '{learner.algo}'")
     _algo_options(config)
     require(replay.replay in ("uniform", "ranked"), f"--replay must be 'uniform' or 'ranked', got '{replay.replay}'")
+    require(replay.reading in ("paper", "schaul"), f"--reading must be 'paper' or 'schaul', got '{replay.reading}'")
     require(replay.alpha >= 0, f"--alpha must be >= 0, got {replay.alpha}")
+    require(
+        0 <= replay.importance_exponent <= 1,
+        f"--importance-exponent must be in [0, 1], got {replay.importance_exponent}",
+    )
     require(0 <= replay.beta <= 1, f"--beta must be in [0, 1], got {replay.beta}")
     _positive(config, ("episodes", "seeds", "num_envs", "update_every", "log_every", "checkpoint_every"))
     _positive(replay, ("batch_size", "buffer_size", "refresh_every"))

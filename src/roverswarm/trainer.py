@@ -90,6 +90,13 @@ def noise_scale(config: TrainConfig, episodes: jax.Array) -> jax.Array:
     return config.noise_std + frac * (config.noise_final - config.noise_std)
 
 
+def importance_exponent(config: TrainConfig, episodes: jax.Array) -> jax.Array:
+    """The importance weights' exponent after ``episodes`` episodes: linear from
+    --importance-exponent to 1 at the run's last episode."""
+    start = config.buffer.importance_exponent
+    return start + jnp.minimum(episodes / config.episodes, 1.0) * (1.0 - start)
+
+
 def collect(config: TrainConfig, params: EnvParams, learner: LearnerState, key: jax.Array, noise_std: jax.Array):
     """E episodes of one seed with Gaussian exploration noise of std ``noise_std``; with
     ensembles, every agent runs one sub-policy per episode, drawn uniformly in each environment.
@@ -142,10 +149,11 @@ def learn(
     buffer_state: BufferState,
     key: jax.Array,
     draw: Draw,
+    exponent: jax.Array,
 ):
     """One update of every agent of one seed on the transitions of ``draw``, drawn from its
     replay (observations rebuilt from the compact records); the sampled TD losses go back to
-    it. ``key`` draws the recent batch of inference.
+    it. ``key`` draws the recent batch of inference; ``exponent`` is the importance weights'.
 
     Info per agent [N] (the update's losses and Q; with --infer-policies the approximations'
     error before the update) or per sampling group [N * K] (what was sampled: its mean and
@@ -153,7 +161,9 @@ def learn(
     empty partition gets zero weights, so it changes nothing."""
     expand = partial(compact.expand, buffer_state, params=params, num_envs=config.num_envs)
     batch = expand(draw.indices)
-    weights = importance_weights(draw) if config.buffer.importance_weights else jnp.ones(draw.probabilities.shape)
+    weights = (
+        importance_weights(draw, exponent) if config.buffer.importance_weights else jnp.ones(draw.probabilities.shape)
+    )
     weights = weights * (draw.population > 0)[:, None]
     error = recent = None
     if config.learner.infer_policies:
@@ -189,11 +199,14 @@ def iteration(config: TrainConfig, params: EnvParams, buffer: Buffer, runner: Ru
     episodes = runner.episodes + config.num_envs
     transitions_seen = episodes * params.max_steps
     num_updates = config.num_envs * params.max_steps // config.update_every
+    exponent = importance_exponent(config, runner.episodes)
 
     def do_updates(learner, buffer_state, key):
         def one(carry, xs):
             learner, buffer_state = carry
-            learner, buffer_state, info = jax.vmap(partial(learn, config, params, buffer))(learner, buffer_state, *xs)
+            learner, buffer_state, info = jax.vmap(partial(learn, config, params, buffer), in_axes=(0, 0, 0, 0, None))(
+                learner, buffer_state, *xs, exponent
+            )
             return (learner, buffer_state), info
 
         update_keys = jax.vmap(lambda k: jax.random.split(k, num_updates), out_axes=1)(key)  # [U, S]

@@ -10,7 +10,9 @@ def make_buffer(config: ReplayConfig, num_agents: int, num_policies: int = 1) ->
     """The replay ``config`` describes, for ``num_agents`` agents with ``num_policies``
     sub-policies each (one partition per sub-policy of every agent if > 1)."""
     if config.replay == "ranked":
-        return ranked_buffer(config.buffer_size, config.batch_size, num_agents, config.alpha, config.beta, num_policies)
+        return ranked_buffer(
+            config.buffer_size, config.batch_size, num_agents, config.alpha, config.beta, num_policies, config.reading
+        )
     return uniform_buffer(config.buffer_size, config.batch_size, num_agents, num_policies)
 
 

@@ -156,9 +156,10 @@ def recent_indices(state: BufferState, key: jax.Array, window: int, batch_size: 
     return nth_stored(state, ages)
 
 
-def importance_weights(draw: Draw) -> jax.Array:
-    """[G, B] importance-sampling weights ``1 / (M * P(i))``, divided by each batch's maximum."""
-    weights = 1.0 / (jnp.maximum(draw.population, 1)[:, None] * draw.probabilities)
+def importance_weights(draw: Draw, exponent: float | jax.Array = 1.0) -> jax.Array:
+    """[G, B] importance-sampling weights ``(M * P(i))^-exponent``, divided by each batch's
+    maximum (Schaul et al.'s w_i; ``exponent`` 1 corrects the draw's bias fully)."""
+    weights = (jnp.maximum(draw.population, 1)[:, None] * draw.probabilities) ** -exponent
     return weights / weights.max(axis=-1, keepdims=True)
 
 
@@ -180,12 +181,19 @@ class ReplayConfig:
     """Transitions per update, per agent."""
     buffer_size: int = 1_000_000
     """Replay capacity in transitions."""
+    reading: Literal["paper", "schaul"] = "paper"
+    """Ranked replay: how a loss rank becomes a weight. `paper`: eq. 12-13 normalised,
+    (rank / M)^alpha with rank 1 the smallest loss; `schaul`: Schaul et al.'s rank-based
+    prioritised replay, rank^-alpha with rank 1 the largest loss (docs/replay.md#readings)."""
     alpha: float = 1.0
-    """Ranked replay: amplification of the loss rank, P ~ rank^alpha (0 = uniform)."""
+    """Ranked replay: how sharply the weights follow the rank (0 = uniform; Schaul used 0.7)."""
     beta: float = 0.1
     """Ranked replay: share of samples drawn uniformly, in [0, 1] (1 = uniform)."""
     importance_weights: bool = False
-    """Weight each sample's critic loss by 1 / (M * P(i)), normalised to a batch maximum of 1."""
+    """Weight each sample's critic loss by (M * P(i))^-e, normalised to a batch maximum of 1."""
+    importance_exponent: float = 1.0
+    """The importance weights' exponent e at the first episode, in [0, 1]; it rises linearly
+    to 1 at the run's last episode (Schaul et al. start at 0.5)."""
     refresh_every: int = 1000
     """Ranked replay: updates between re-rankings of the whole buffer (checked once per iteration)."""
 

@@ -21,6 +21,17 @@ with alpha = 2 three times). Equal losses share their average rank, as in
 its loss is +inf: it enters at the top. After each update the losses of the sampled
 transitions are written back (:meth:`Buffer.set_priorities`).
 
+A second reading, ``reading="schaul"``, is the rank-based prioritised replay of Schaul et al.
+(2016, sec. 3.3): priority ``1 / rank`` with rank 1 the *largest* loss, so
+
+    P_i(j) = (1 - beta) * d_j^-alpha / sum_k d_k^-alpha + beta / M,    d_j = M + 1 - p_j
+
+(Schaul: alpha about 0.7, no uniform share, importance weights with an annealed exponent,
+:func:`~roverswarm.buffers.base.importance_weights`). Its head is far sharper: with alpha = 0.7
+and M = 1e6 the largest loss is drawn about 4,800 times as often as the average transition
+(the paper reading with alpha = 1: twice).
+A new transition gets the largest priority (weight 1, as rank 1), as in Schaul's algorithm.
+
 Ranks are refreshed lazily, every ``--refresh-every`` updates (:meth:`Buffer.refresh`),
 because ranking 1e6 losses costs several updates. A refresh bins every loss by its float32
 bit pattern (a log scale with 64 bins per octave, so losses within ~1% of each other tie),
@@ -31,7 +42,9 @@ neighbouring values: a few cache lines instead of a binary search through C valu
 Between refreshes:
 
 * transitions added since the refresh are tied at the top (their loss is unknown), above
-  every ranked one, which is exactly eq. 12 while the buffer is not full;
+  every ranked one, which is exactly eq. 12 while the buffer is not full (with the
+  ``schaul`` reading each has weight 1, the top priority, beside the ranked ones' weights of
+  the last refresh);
 * losses written back since the refresh wait for the next one;
 * once the buffer is full, the slots overwritten since the refresh no longer hold the
   transitions that were ranked: a draw of the table that lands on one is redrawn among the
@@ -47,6 +60,7 @@ import functools
 import jax
 import jax.numpy as jnp
 from flax import struct
+from typing import Literal
 
 from roverswarm.buffers.base import Buffer, BufferState, Draw, Transition, empty_state, nth_stored, population, write
 
@@ -54,6 +68,10 @@ LOSS_BINS = 2**14
 """float32 bit pattern >> 17: sign-free exponent and top 6 mantissa bits, 64 bins per octave."""
 _BIN_SHIFT = 17
 FAN_OUT = 32
+
+Reading = Literal["paper", "schaul"]
+"""How a transition's loss rank becomes its sampling weight (module docstring): ``paper``,
+``(rank / M)^alpha`` with rank 1 the smallest loss; ``schaul``, ``rank^-alpha`` with rank 1 the largest."""
 
 
 @struct.dataclass
@@ -111,13 +129,23 @@ def _running_sums(x: jax.Array) -> jax.Array:
     return jnp.stack(sums, axis=-1)
 
 
-def _tables(loss: jax.Array, valid: jax.Array, capacity: int, alpha: float):
+def rank_weights(ranks: jax.Array, count: jax.Array, alpha: float, reading: Reading) -> jax.Array:
+    """Sampling weight of each ascending average rank (0 = no transition) among ``count``:
+    ``paper``, eq. 12's numerator scaled by the top rank, ``(rank / count)^alpha``; ``schaul``,
+    ``(count + 1 - rank)^-alpha``. The largest possible weight is 1 in both, for any alpha."""
+    if reading == "paper":
+        weights = (ranks / jnp.maximum(count, 1)) ** alpha
+    else:
+        weights = jnp.maximum(count + 1.0 - ranks, 1.0) ** -alpha
+    return jnp.where(ranks > 0, weights, 0.0)
+
+
+def _tables(loss: jax.Array, valid: jax.Array, capacity: int, alpha: float, reading: Reading):
     """Every sampling group's table from the losses [G, C] of its ``valid`` slots:
     (slot_sums [G, C'], group_sums [G, C' / F], block_cdf [G, C' / F^2], total weight [G])."""
     groups = loss.shape[0]
     ranks = average_ranks(loss, valid)
-    # eq. 12's numerator, scaled by the top rank so that the largest weight is 1 for any alpha
-    weights = jnp.where(ranks > 0, (ranks / jnp.maximum(valid.sum(axis=1, keepdims=True), 1)) ** alpha, 0.0)
+    weights = rank_weights(ranks, valid.sum(axis=1, keepdims=True), alpha, reading)
     total = weights.sum(axis=1)
     share = jnp.pad(weights / jnp.maximum(total, 1e-30)[:, None], ((0, 0), (0, _padded(capacity) - capacity)))
     slot_sums = _running_sums(share.reshape(groups, -1, FAN_OUT))
@@ -163,25 +191,32 @@ def _region_share(slot_sums, group_sums, block_cdf, start: jax.Array, count: jax
 
 
 def _fresh_share(
-    fresh: jax.Array, live: jax.Array, ranked: jax.Array, ranked_weight: jax.Array, alpha: float
+    fresh: jax.Array, live: jax.Array, ranked: jax.Array, ranked_weight: jax.Array, alpha: float, reading: Reading
 ) -> jax.Array:
     """[G] share of the ranked part that goes to the ``fresh`` transitions (tied at the top).
 
-    Their weight is ``n * (top / M_r)^alpha`` beside the ``ranked`` ones' ``sum (rank / M_r)^alpha``,
-    compared in logs so that no alpha overflows."""
+    Their weight is ``n * (top / M_r)^alpha`` (``paper``) or ``n`` (``schaul``: the top
+    priority) beside the ``ranked`` ones' total, compared in logs so that no alpha overflows."""
     n = jnp.maximum(fresh, 1).astype(jnp.float32)
     top = ranked.astype(jnp.float32) + (n + 1.0) / 2.0
-    log_ratio = jnp.log(jnp.maximum(ranked_weight, 1e-30)) - jnp.log(n) - alpha * jnp.log(top / jnp.maximum(ranked, 1))
+    log_each = alpha * jnp.log(top / jnp.maximum(ranked, 1)) if reading == "paper" else 0.0
+    log_ratio = jnp.log(jnp.maximum(ranked_weight, 1e-30)) - jnp.log(n) - log_each
     share = jax.nn.sigmoid(-log_ratio)
     return jnp.where(fresh == 0, 0.0, jnp.where(fresh >= live, 1.0, share))
 
 
 @functools.lru_cache(maxsize=None)
 def ranked_buffer(
-    capacity: int, batch_size: int, num_agents: int, alpha: float, beta: float, num_policies: int = 1
+    capacity: int,
+    batch_size: int,
+    num_agents: int,
+    alpha: float,
+    beta: float,
+    num_policies: int = 1,
+    reading: Reading = "paper",
 ) -> Buffer:
     """The experience sample optimizer with amplification ``alpha`` and uniform share ``beta``,
-    for ``num_policies`` sub-policies per agent.
+    for ``num_policies`` sub-policies per agent, in the given ``reading`` of the rank.
 
     Cached like :func:`~roverswarm.buffers.uniform.uniform_buffer`, so jitted code that takes
     it as a static argument compiles once per setting."""
@@ -224,7 +259,7 @@ def ranked_buffer(
 
     def rerank(extra: RankState, size: jax.Array, position: jax.Array, policy, parts) -> RankState:
         loss, valid = group_losses(extra, size, policy)
-        slot_sums, group_sums, block_cdf, total = _tables(loss, valid, capacity, alpha)
+        slot_sums, group_sums, block_cdf, total = _tables(loss, valid, capacity, alpha, reading)
         return extra.replace(
             slot_sums=slot_sums,
             group_sums=group_sums,
@@ -301,7 +336,7 @@ def ranked_buffer(
         else:
             ranked, ring, head = jnp.broadcast_to(extra.ranked_size, (groups,)), None, None
             fresh = jnp.broadcast_to(extra.fresh, (groups,))
-        shares = _fresh_share(fresh, live, ranked, extra.ranked_weight, alpha)
+        shares = _fresh_share(fresh, live, ranked, extra.ranked_weight, alpha, reading)
         indices, probabilities = jax.vmap(
             sample_group, in_axes=(None, 0, 0, 0, 0, 0, 0, 0, 0 if partitioned else None, 0 if partitioned else None)
         )(
