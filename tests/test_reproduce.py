@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import os
+import shutil
 import signal
 import multiprocessing
 import threading
@@ -16,11 +17,12 @@ import pytest
 from scipy import stats
 
 import roverswarm.experiments.grid as grid_module
+from roverswarm.experiments.grid import plan
 from roverswarm.cli import main
 from roverswarm.errors import RunStopped, UserError
 from roverswarm.experiments import ReproduceConfig, reproduce
-from roverswarm.experiments.paper import PAPER_TABLE1, relative_change
-from roverswarm.config import MAPPO, config_from_json, with_options
+from roverswarm.experiments.paper import PAPER_TABLE1, paired_change, relative_change
+from roverswarm.config import MAPPO, PRESETS, config_from_json, with_options
 
 SCENARIOS = ("paper-2", "paper-3")
 ALGORITHMS = ("ddpg", "maddpg", "maddpg-optimizer")
@@ -33,7 +35,8 @@ def base(tiny_config):
 
 def tiny_grid(out: Path, **changes) -> ReproduceConfig:
     """A grid of tiny runs, trained in this process unless ``changes`` say otherwise."""
-    return ReproduceConfig(**{"out": out, "scenarios": SCENARIOS, "seeds": 2, "episodes": 400, "jobs": 1, **changes})
+    defaults = {"out": out, "scenarios": SCENARIOS, "seeds": 2, "episodes": 400, "jobs": 1, "eval_episodes": 50}
+    return ReproduceConfig(**{**defaults, **changes})
 
 
 def timeless(rows: dict[int, list[dict[str, float]]]) -> dict[int, list[dict[str, float]]]:
@@ -55,28 +58,113 @@ def seed_rows(path: Path) -> dict[int, list[dict[str, float]]]:
     return {s: [r for r in rows if int(r["seed"]) == s] for s in sorted({int(r["seed"]) for r in rows})}
 
 
+def read_table(path: Path) -> list[dict[str, object]]:
+    """A CSV file of the report with its numbers as floats (text columns kept)."""
+
+    def value(text: str) -> object:
+        try:
+            return float(text)
+        except ValueError:
+            return text
+
+    with open(path, newline="") as f:
+        return [{k: value(v) for k, v in r.items()} for r in csv.DictReader(f)]
+
+
+def per_seed(folder: Path, window: int = 5000) -> tuple[np.ndarray, np.ndarray]:
+    """Slowly, from metrics.csv: every seed's maximum and last-window mean episode reward."""
+    rows = seed_rows(folder / "metrics.csv")
+    best = np.array([max(r["episode_reward"] for r in seed) for seed in rows.values()])
+    last = []
+    for seed in rows.values():
+        end = max(r["episodes"] for r in seed)
+        last.append(np.mean([r["episode_reward"] for r in seed if r["episodes"] > end - window]))
+    return best, np.array(last)
+
+
+def assert_paired(change, low, high, p, treated: np.ndarray, control: np.ndarray) -> None:
+    """A Table I change against its definition: the change of the means, the paired t-test, and
+    an interval around the change."""
+    assert change == pytest.approx(100 * (treated.mean() - control.mean()) / abs(control.mean()), rel=1e-6)
+    assert p == pytest.approx(stats.ttest_rel(treated, control).pvalue, rel=1e-6)
+    assert low < change < high
+
+
 def test_table1_comes_from_the_metrics_files(finished):
-    with open(finished / "table1.csv", newline="") as f:
-        table = [{k: float(v) for k, v in r.items()} for r in csv.DictReader(f)]
-    assert [int(r["rovers"]) for r in table] == [2, 3]
+    table = read_table(finished / "table1.csv")
+    assert [int(r["rovers"]) for r in table] == [2, 3] and {r["arm"] for r in table} == {"MADDPG + optimizer"}
     for row, scenario in zip(table, SCENARIOS):
-        best = {}
-        seconds = {}
-        for algorithm in ("maddpg", "maddpg-optimizer"):
-            per_seed = seed_rows(finished / "runs" / scenario / algorithm / "metrics.csv")
-            best[algorithm] = np.array([max(r["episode_reward"] for r in rows) for rows in per_seed.values()])
-            seconds[algorithm] = np.array([r["wall_seconds"] * 10 for r in per_seed[0][1:]])  # rows of 100 episodes
-        plain, opt = best["maddpg"], best["maddpg-optimizer"]
-        assert row["reward_change_pct"] == pytest.approx(
-            100 * (opt.mean() - plain.mean()) / abs(plain.mean()), rel=1e-6
-        )
-        assert row["reward_p"] == pytest.approx(stats.ttest_ind(opt, plain, equal_var=False).pvalue, rel=1e-6)
-        assert row["reward_ci_low"] < row["reward_change_pct"] < row["reward_ci_high"]
+        runs = finished / "runs" / scenario
+        (plain, plain_last), (opt, opt_last) = per_seed(runs / "maddpg"), per_seed(runs / "maddpg-optimizer")
+        assert_paired(*(row[f"reward_{k}"] for k in ("change_pct", "ci_low", "ci_high", "p")), opt, plain)
+        assert_paired(*(row[f"last_{k}"] for k in ("change_pct", "ci_low", "ci_high", "p")), opt_last, plain_last)
+        seconds = {
+            a: np.array(
+                [r["wall_seconds"] * 10 for r in seed_rows(runs / a / "metrics.csv")[0][1:]]
+            )  # 100-episode rows
+            for a in ("maddpg", "maddpg-optimizer")
+        }
         t_plain, t_opt = seconds["maddpg"], seconds["maddpg-optimizer"]
         assert row["time_change_pct"] == pytest.approx(100 * (t_opt.mean() - t_plain.mean()) / t_plain.mean(), rel=1e-6)
         assert (row["paper_reward_change_pct"], row["paper_time_change_pct"]) == PAPER_TABLE1[int(row["rovers"])]
     markdown = (finished / "table1.md").read_text()
     assert markdown.count("\n| ") == 2 and "+8.78%" not in markdown and "+3.08%" in markdown
+
+
+def test_two_optimizer_variants_against_one_maddpg_arm(base, finished, tmp_path, capsys):
+    """A grid with two readings of the optimizer beside the plain MADDPG runs of ``finished``
+    (copied: the same settings, so the grid keeps them): each variant's Table I rows, its pooled
+    test and every run's deterministic evaluation, recomputed from the run folders."""
+    for scenario in SCENARIOS:
+        shutil.copytree(finished / "runs" / scenario / "maddpg", tmp_path / "runs" / scenario / "maddpg")
+    variants = ("sharp:alpha=3", "schaul:reading=schaul,alpha=0.7,beta=0,importance_weights=true")
+    grid = tiny_grid(tmp_path, algorithms=("maddpg", "maddpg-optimizer"), variants=variants, time_chunks=2)
+    reproduce(grid, base, live=False)
+    timing = read_table(tmp_path / "timing.csv")  # 2 chunks of every arm, back to back, per scenario
+    timed = {(r["scenario"], r["arm"]): [] for r in timing}
+    for r in timing:
+        timed[(r["scenario"], r["arm"])].append(r["seconds_per_1000"])
+    assert sorted(timed) == sorted(
+        (s, a) for s in SCENARIOS for a in ("maddpg", "maddpg-optimizer-sharp", "maddpg-optimizer-schaul")
+    )
+    assert all(len(x) == 2 and min(x) > 0 for x in timed.values())
+    arms = {"sharp": dict(alpha=3.0), "schaul": dict(reading="schaul", alpha=0.7, beta=0.0, importance_weights=True)}
+    table = read_table(tmp_path / "table1.csv")
+    assert [(int(r["rovers"]), r["arm"]) for r in table] == [
+        (n, f"MADDPG + optimizer ({name})") for name in arms for n in (2, 3)
+    ]
+    report = (tmp_path / "report.md").read_text()
+    for name, options in arms.items():
+        pooled = []
+        for scenario in SCENARIOS:
+            folder = tmp_path / "runs" / scenario / f"maddpg-optimizer-{name}"
+            saved = config_from_json((folder / "config.json").read_text())
+            assert saved == with_options(
+                base, dict(scenario=scenario, episodes=400, seeds=2, replay="ranked", **options)
+            )
+            (plain, plain_last), (opt, opt_last) = per_seed(tmp_path / "runs" / scenario / "maddpg"), per_seed(folder)
+            row = next(r for r in table if r["arm"].endswith(f"({name})") and r["rovers"] == int(scenario[-1]))
+            assert_paired(*(row[f"reward_{k}"] for k in ("change_pct", "ci_low", "ci_high", "p")), opt, plain)
+            assert_paired(*(row[f"last_{k}"] for k in ("change_pct", "ci_low", "ci_high", "p")), opt_last, plain_last)
+            t_opt, t_plain = (np.array(timed[(scenario, a)]) for a in (f"maddpg-optimizer-{name}", "maddpg"))
+            assert row["time_change_pct"] == pytest.approx(100 * (t_opt.mean() / t_plain.mean() - 1), rel=1e-6)
+            pooled.append(100 * (opt - plain) / abs(plain.mean()))
+        pooled = np.concatenate(pooled)
+        line = next(line for line in report.splitlines() if line.startswith(f"| MADDPG + optimizer ({name}) | 2 |"))
+        assert f"| {pooled.mean():+.2f}% |" in line and f"| {stats.ttest_1samp(pooled, 0).pvalue:.3g} |" in line
+    final = read_table(tmp_path / "final_policies.csv")
+    assert len(final) == 6
+    for row in final:  # every seed's deterministic score on 50 episodes, as `roverswarm evaluate` gives it
+        folder = tmp_path / "runs" / row["scenario"] / row["setting"]
+        evaluated = read_table(folder / "evaluation.csv")
+        assert {r["episodes"] for r in evaluated} == {50.0}
+        scores = [r["normalized_score"] for r in evaluated if r["policy"] not in ("random", "oracle")]
+        assert row["scores"] == " / ".join(f"{x:.2f}" for x in scores) and len(scores) == 2
+    assert "## Final policies, deterministic evaluation" in report
+    assert main(["reproduce", "--out", str(tmp_path), "--variants", "bad:gamma=0.5"]) == 2
+    assert "'gamma' in 'bad:gamma=0.5' is not an optimizer option" in capsys.readouterr().err
+    assert main(["reproduce", "--out", str(tmp_path), "--variants", "a:alpha=x"]) == 2
+    assert "--variants: alpha in 'a:alpha=x'" in capsys.readouterr().err
 
 
 def test_figures_and_report(finished):
@@ -163,6 +251,42 @@ def test_a_folder_with_other_settings_is_not_overwritten(base, finished, capsys)
     assert "--address needs --backend ray" in capsys.readouterr().err
     assert main(["reproduce", "--out", str(finished), "--scenarios", "paper-3", "spread-3"]) == 2
     assert "give each swarm size N once" in capsys.readouterr().err
+
+
+def test_the_grid_sets_preset_ensembles_inferred_policies_and_the_optimizer(tmp_path, capsys):
+    """The runs the options ask for: every paper learner at the preset with K sub-policies,
+    inferred policies for the MADDPG arms only, the optimizer flags on the optimizer arm."""
+    config = ReproduceConfig(
+        out=tmp_path, scenarios=("paper-4",), preset="default", ensemble=3, infer_policies=True, alpha=2.0, beta=0.0
+    )
+    runs = {run.algorithm: run.config for run in plan(config, PRESETS[config.preset])}
+    grid = dict(scenario="paper-4", episodes=60_000, seeds=5, ensemble=3)
+    assert runs == {
+        "ddpg": with_options(PRESETS["default"], dict(grid, algo="ddpg")),
+        "maddpg": with_options(PRESETS["default"], dict(grid, infer_policies=True)),
+        "maddpg-optimizer": with_options(
+            PRESETS["default"], dict(grid, infer_policies=True, replay="ranked", alpha=2.0, beta=0.0)
+        ),
+    }
+    swarm = ["reproduce", "--out", str(tmp_path), "--preset", "swarm", "--ensemble", "3"]
+    assert main(swarm) == 2
+    assert "--share-parameters does not compose with --ensemble > 1" in capsys.readouterr().err
+    assert main(["reproduce", "--out", str(tmp_path), "--algorithms", "maddpg", "--variants", "a"]) == 2
+    assert "--variants needs maddpg-optimizer in --algorithms" in capsys.readouterr().err
+
+
+def test_the_paired_change_interval_covers_the_truth_95_percent_of_the_time():
+    """Monte Carlo: 5 seeds whose arms share a seed effect (correlated pairs), true change +10%."""
+    rng = np.random.default_rng(1)
+    hits = 0
+    trials = 2000
+    for _ in range(trials):
+        seed_effect = rng.normal(0.0, 10.0, 5)
+        control = -100.0 + seed_effect + rng.normal(0.0, 3.0, 5)
+        treated = -90.0 + 0.9 * seed_effect + rng.normal(0.0, 3.0, 5)
+        _, low, high, _ = paired_change(treated, control)
+        hits += low <= 10.0 <= high
+    assert 0.92 <= hits / trials <= 0.985
 
 
 def test_the_relative_change_interval_covers_the_truth_95_percent_of_the_time():

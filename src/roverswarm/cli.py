@@ -74,7 +74,7 @@ def run_train(cmd: TrainCommand) -> None:
 
 def run_reproduce(cmd: ReproduceCommand) -> None:
     report = reproduce(cmd.config)
-    Console().print(f"\ndone: {report} (with table1.md, table1.csv, fig8.png, fig9.png)")
+    Console().print(f"\ndone: {report} (with table1.md, table1.csv, final_policies.csv, fig8.png, fig9.png)")
 
 
 def run_sweep(cmd: SweepConfig) -> None:

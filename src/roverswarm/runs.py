@@ -252,11 +252,12 @@ def metric_rows(
     return rows
 
 
-def write_csv(path: Path, rows: list[dict]) -> None:
-    """``rows`` (dicts with the same keys) as a CSV file, written atomically (temp file + rename)."""
+def write_csv(path: Path, rows: list[dict], columns: list[str] | None = None) -> None:
+    """``rows`` (dicts with the same keys; ``columns``, default the first row's) as a CSV file,
+    written atomically (temp file + rename)."""
 
     def write(f) -> None:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer = csv.DictWriter(f, fieldnames=columns or list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import re
 import shutil
 import signal
 import sys
@@ -44,6 +45,24 @@ them, each from its own preset (``preset``)."""
 
 Algorithm = Literal["ddpg", "maddpg", "maddpg-optimizer", "mappo", "ippo"]
 
+OPTIMIZER = "maddpg-optimizer"
+
+
+def _flag(text: str) -> bool:
+    require(text.lower() in ("true", "false"), f"must be true or false, got '{text}'")
+    return text.lower() == "true"
+
+
+OPTIMIZER_OPTIONS: dict[str, Callable[[str], object]] = {
+    "reading": str,
+    "alpha": float,
+    "beta": float,
+    "refresh_every": int,
+    "importance_weights": _flag,
+    "importance_exponent": float,
+}
+"""The options an optimizer arm (``--variants``) may set, the ranked replay's, and how each value is read."""
+
 
 @dataclass(frozen=True)
 class ReproduceConfig:
@@ -65,8 +84,40 @@ class ReproduceConfig:
     """Training episodes per seed (default the paper's 60000; 2000 with --quick)."""
     seed: int = 0
     """Base random seed of every run (the same seeds for every learner)."""
+    preset: Literal["reference", "default", "swarm"] = "reference"
+    """Settings of the paper's learners (DDPG, MADDPG, the optimizer): `reference`, the
+    reference MADDPG code's (the paper states only its 2 x 64 networks); `default` or `swarm`
+    (docs/training.md#presets)."""
+    ensemble: int | None = None
+    """Sub-policies per agent of the paper's learners (policy ensembles, section III.B; the
+    paper's K = 3). Default: the preset's (1)."""
+    infer_policies: bool = False
+    """MADDPG arms (with and without the optimizer) learn approximations of the other agents'
+    policies (section III.A); DDPG's critics see no other agent, so it trains as before."""
+    reading: Literal["paper", "schaul"] | None = None
+    """The optimizer's reading of the rank (docs/replay.md#readings). Default: the preset's (`paper`)."""
+    alpha: float | None = None
+    """The optimizer's alpha. Default: the preset's (1)."""
+    beta: float | None = None
+    """The optimizer's uniform share beta. Default: the preset's (0.1)."""
+    refresh_every: int | None = None
+    """Updates between the optimizer's re-rankings. Default: the preset's (250 for `reference`)."""
+    variants: tuple[str, ...] = ()
+    """Several optimizer arms against the one plain MADDPG arm, on the same seeds: each
+    `NAME` or `NAME:OPTION=VALUE,...` over the optimizer options above (reading, alpha, beta,
+    refresh_every, importance_weights, importance_exponent), e.g. `paper` `sharp:alpha=3`
+    `schaul:reading=schaul,alpha=0.7,beta=0,importance_weights=true,importance_exponent=0.5`.
+    Arm NAME trains in runs/<scenario>/maddpg-optimizer-NAME. Default: one arm, maddpg-optimizer."""
     force: bool = False
     """Train every run again, even finished ones."""
+    time_chunks: int | None = None
+    """Chunks of every paper-learner arm timed back to back after training, per scenario (the
+    benchmarks' method: full replay, chunks alternating) for the time column of Table I and
+    Figure 8; 0 uses the runs' own chunk times, which other load on the machine can skew.
+    Default: 3, or 0 for runs under 5000 episodes (--quick)."""
+    eval_episodes: int | None = None
+    """Deterministic evaluation episodes of every run's final policies, the same for every
+    policy (default 1000; 200 with --quick)."""
     backend: Literal["local", "ray"] = "local"
     """`local`: runs on this machine (see --jobs); `ray`: one Ray task per run."""
     jobs: int | None = None
@@ -87,6 +138,16 @@ class ReproduceConfig:
     def grid_episodes(self) -> int:
         return self.episodes if self.episodes is not None else (2000 if self.quick else 60_000)
 
+    @property
+    def grid_time_chunks(self) -> int:
+        if self.time_chunks is not None:
+            return self.time_chunks
+        return 0 if self.grid_episodes < SHORT_RUN else 3
+
+    @property
+    def grid_eval_episodes(self) -> int:
+        return self.eval_episodes if self.eval_episodes is not None else (200 if self.quick else 1000)
+
 
 @dataclass(frozen=True)
 class GridRun:
@@ -102,10 +163,53 @@ class GridRun:
         return f"{self.scenario} {self.algorithm}"
 
 
+def parse_variant(text: str) -> tuple[str, dict[str, object]]:
+    """``NAME`` or ``NAME:OPTION=VALUE,...`` -> (NAME, options), each value read as its
+    option's type; :class:`UserError` names what is wrong."""
+    name, _, rest = text.partition(":")
+    require(
+        re.fullmatch(r"[a-z0-9][a-z0-9_-]*", name) is not None,
+        f"--variants: '{text}' must start with a name of lower-case letters, digits, '-' or '_'",
+    )
+    options: dict[str, object] = {}
+    for item in filter(None, rest.split(",")):
+        key, equals, value = item.partition("=")
+        require(equals == "=", f"--variants: '{item}' in '{text}' must be OPTION=VALUE")
+        require(
+            key in OPTIMIZER_OPTIONS,
+            f"--variants: '{key}' in '{text}' is not an optimizer option; allowed: {', '.join(OPTIMIZER_OPTIONS)}",
+        )
+        try:
+            options[key] = OPTIMIZER_OPTIONS[key](value)
+        except (ValueError, UserError) as error:
+            raise UserError(f"--variants: {key} in '{text}': {error}") from None
+    return name, options
+
+
+def optimizer_arms(config: ReproduceConfig) -> dict[str, dict[str, object]]:
+    """Every optimizer arm's name and its replay options (the optimizer flags, then the variant's)."""
+    flags = {k: getattr(config, k) for k in ("reading", "alpha", "beta", "refresh_every")}
+    common = {"algo": "maddpg", "replay": "ranked", **{k: v for k, v in flags.items() if v is not None}}
+    if not config.variants:
+        return {OPTIMIZER: common}
+    arms = {}
+    for text in config.variants:
+        name, options = parse_variant(text)
+        require(f"{OPTIMIZER}-{name}" not in arms, f"--variants: the name '{name}' is given twice")
+        arms[f"{OPTIMIZER}-{name}"] = {**common, **options}
+    return arms
+
+
+def is_optimizer(algorithm: str) -> bool:
+    """Whether a grid arm is MADDPG with the optimizer (the default arm or a ``--variants`` one)."""
+    return algorithm == OPTIMIZER or algorithm.startswith(OPTIMIZER + "-")
+
+
 def plan(config: ReproduceConfig, base: TrainConfig = REFERENCE) -> list[GridRun]:
-    """The runs of the grid, at the settings of ``base`` (default: the reference preset), after
-    checking the input. An arm naming a preset (MAPPO, IPPO) starts from that preset instead,
-    with ``base``'s logging and checkpoint intervals."""
+    """The runs of the grid, at the settings of ``base`` (default: the reference preset) with
+    the grid's ensembles, inferred policies and optimizer arms, after checking the input. An
+    arm naming a preset (MAPPO, IPPO) starts from that preset instead, with ``base``'s
+    logging and checkpoint intervals."""
     require(len(config.scenarios) > 0, "--scenarios: give at least one scenario")
     for name in config.scenarios:
         require(name in SCENARIOS, f"--scenarios: unknown scenario '{name}'; known: {', '.join(SCENARIOS)}")
@@ -114,6 +218,8 @@ def plan(config: ReproduceConfig, base: TrainConfig = REFERENCE) -> list[GridRun
     require(len(set(config.algorithms)) == len(config.algorithms) > 0, "--algorithms: give each algorithm once")
     require(config.grid_seeds >= 1, f"--seeds must be >= 1, got {config.grid_seeds}")
     require(config.retries >= 0, f"--retries must be >= 0, got {config.retries}")
+    require(config.grid_time_chunks >= 0, f"--time-chunks must be >= 0, got {config.grid_time_chunks}")
+    require(config.grid_eval_episodes >= 1, f"--eval-episodes must be >= 1, got {config.grid_eval_episodes}")
     require(config.address is None or config.backend == "ray", "--address needs --backend ray")
     cpus = len(usable_cpus())
     require(
@@ -121,10 +227,18 @@ def plan(config: ReproduceConfig, base: TrainConfig = REFERENCE) -> list[GridRun
         f"--jobs must be in [1, {cpus}] (the CPUs this process may use), got {config.jobs}",
     )
     require(config.jobs is None or config.backend == "local", "--jobs is for --backend local (Ray places its tasks)")
+    require(not config.variants or OPTIMIZER in config.algorithms, f"--variants needs {OPTIMIZER} in --algorithms")
+    arms: dict[str, dict[str, object]] = {}
+    for algorithm in config.algorithms:
+        arms.update(optimizer_arms(config) if algorithm == OPTIMIZER else {algorithm: dict(ALGORITHMS[algorithm])})
+    paper = {} if config.ensemble is None else {"ensemble": config.ensemble}
     runs = []
     for scenario in config.scenarios:
-        for algorithm in config.algorithms:
-            settings = dict(ALGORITHMS[algorithm])
+        for algorithm, settings in arms.items():
+            settings = dict(settings)
+            if "preset" not in settings:  # one of the paper's learners
+                infer = config.infer_policies and settings["algo"] == "maddpg"
+                settings.update(paper, **({"infer_policies": True} if infer else {}))
             start = PRESETS[settings.pop("preset")] if "preset" in settings else base
             train_config = with_options(
                 start,

@@ -8,12 +8,25 @@ Definitions (the paper's, made precise):
 * *time per 1000 episodes*: a row's wall seconds (all seeds of the run together, vmapped);
   the first row of a run is left out, since it includes compilation.
 
-Table I's relative changes compare MADDPG with the optimizer against plain MADDPG at each N:
-``100 * (mean_opt - mean_plain) / |mean_plain|``. Seeds are the samples for rewards,
-1000-episode rows for time. The 95% interval is the delta-method interval of that ratio
-(both means estimated) with Welch's degrees of freedom; the p-value is Welch's two-sided
-t-test of the difference. The time rows of one run are not independent (and a resumed run
-has one more row with compilation in it), so read the time intervals as indicative.
+* *last-window reward* of a seed: the mean of its rows over the last :data:`LAST_WINDOW`
+  episodes (all rows of a shorter run), where the maximum rewards a lucky peak;
+* *final policies*: every seed's policy at the end of training, evaluated deterministically on
+  the same 1000 episodes as the random and oracle policies (normalised score, POIs observed,
+  collisions, trap contacts), as in ``roverswarm sweep``.
+
+Table I's relative changes compare each optimizer arm (MADDPG with the optimizer, one arm
+per ``--variants`` reading) against plain MADDPG at each N:
+``100 * (mean_opt - mean_plain) / |mean_plain|``. The arms share their seeds (same
+initialisation keys and layouts), so rewards are compared *paired*, seed by seed
+(:func:`paired_change`): the 95% interval is the delta-method interval of the ratio of the
+means from the per-seed residuals ``opt_s - ratio * plain_s`` (t with S - 1 degrees of
+freedom), the p-value the paired two-sided t-test. A test *pooled across N* puts every N's
+per-seed relative differences ``100 * (opt_s - plain_s) / |mean_plain|`` together (one-sample
+t-test). Time, where the arms were timed back to back after training (``--time-chunks``,
+:func:`time_arms`), pairs chunk j of each arm (:func:`paired_change`); otherwise it compares
+the runs' own 1000-episode rows, unpaired (Welch's interval and test, :func:`relative_change`).
+Those rows of one run are not independent, other load on the machine shifts them, and a
+resumed run has one more row with compilation in it: read them as indicative.
 """
 
 from __future__ import annotations
@@ -30,10 +43,15 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from rich.console import Console
+
+from roverswarm.algos.learner import ON_POLICY
 from roverswarm.env.scenarios import get_scenario
-from roverswarm.experiments.grid import GridRun, ReproduceConfig, run_grid
-from roverswarm.config import REFERENCE, TrainConfig, config_to_json
-from roverswarm.runs import METRICS, folder_lock, read_metrics
+from roverswarm.experiments.grid import OPTIMIZER, GridRun, ReproduceConfig, is_optimizer, run_grid
+from roverswarm.experiments.sweep import evaluation, table_row
+from roverswarm.experiments.timing import chunk_seconds
+from roverswarm.config import PRESETS, TrainConfig, config_to_json
+from roverswarm.runs import METRICS, folder_lock, read_metrics, write_csv
 
 PAPER_TABLE1: dict[int, tuple[float, float]] = {2: (1.42, 2.26), 3: (3.08, 2.50), 4: (4.71, 2.69), 5: (8.78, 1.79)}
 """The paper's Table I: N -> (% change in episode reward, % change in training time)."""
@@ -46,6 +64,23 @@ LABELS = {
     "ippo": "IPPO",
 }
 
+LAST_WINDOW = 5000
+"""Episodes at the end of a run over which its last-window reward is averaged."""
+TIMING = "timing.csv"
+
+
+def label(algorithm: str) -> str:
+    """A grid arm's name in tables and figures; an optimizer variant's is "MADDPG + optimizer (NAME)"."""
+    if algorithm in LABELS:
+        return LABELS[algorithm]
+    return f"{LABELS[OPTIMIZER]} ({algorithm.removeprefix(OPTIMIZER + '-')})"
+
+
+def _order(algorithm: str) -> int:
+    """Sort key of the arms: the order of :data:`LABELS`, optimizer variants where the
+    optimizer is (a stable sort keeps them in the grid's order)."""
+    return list(LABELS).index(OPTIMIZER if is_optimizer(algorithm) else algorithm)
+
 
 @dataclass(frozen=True)
 class RunResult:
@@ -56,14 +91,25 @@ class RunResult:
     episodes: np.ndarray  # [T] episodes at each row
     curves: np.ndarray  # [S, T] mean episode reward per seed and row
     chunk_seconds: np.ndarray  # [T - 1] wall seconds per 1000 episodes, first row left out
+    timed: np.ndarray | None = None  # [C] seconds per 1000 episodes timed back to back (--time-chunks)
+
+    @property
+    def seconds(self) -> np.ndarray:
+        """Seconds per 1000 episodes: timed back to back if it was, else the run's own rows."""
+        return self.chunk_seconds if self.timed is None else self.timed
 
     @property
     def best(self) -> np.ndarray:
         """[S] maximum mean episode reward of each seed."""
         return self.curves.max(axis=1)
 
+    @property
+    def last(self) -> np.ndarray:
+        """[S] mean episode reward of each seed over the last :data:`LAST_WINDOW` episodes."""
+        return self.curves[:, self.episodes > self.episodes[-1] - LAST_WINDOW].mean(axis=1)
 
-def load(run: GridRun) -> RunResult:
+
+def load(run: GridRun, timed: dict[tuple[str, str], np.ndarray]) -> RunResult:
     rows = read_metrics(run.folder / METRICS)
     seeds = sorted({int(r["seed"]) for r in rows})
     curves = np.array([[r["episode_reward"] for r in rows if int(r["seed"]) == s] for s in seeds])
@@ -75,7 +121,40 @@ def load(run: GridRun) -> RunResult:
         episodes=np.array([r["episodes"] for r in first]),
         curves=curves,
         chunk_seconds=per_1000[1:] if len(per_1000) > 1 else per_1000,
+        timed=timed.get((run.scenario, run.algorithm)),
     )
+
+
+def time_arms(config: ReproduceConfig, runs: list[GridRun]) -> dict[tuple[str, str], np.ndarray]:
+    """(scenario, arm) -> seconds per 1000 episodes of ``config.grid_time_chunks`` chunks of every
+    paper-learner arm, timed back to back per scenario (:func:`~roverswarm.experiments.timing.chunk_seconds`).
+    Kept in ``timing.csv``: a scenario whose arms were all timed is not timed again."""
+    chunks = config.grid_time_chunks
+    path = config.out / TIMING
+    timed: dict[tuple[str, str], list[float]] = {}
+    if chunks == 0:
+        return {}
+    if path.exists():
+        try:
+            with open(path, newline="") as f:
+                for row in csv.DictReader(f):
+                    timed.setdefault((row["scenario"], row["arm"]), []).append(float(row["seconds_per_1000"]))
+        except (ValueError, KeyError, TypeError):  # unreadable: time again
+            timed = {}
+    for scenario in config.scenarios:
+        arms = [r for r in runs if r.scenario == scenario and r.config.learner.algo not in ON_POLICY]
+        if all(len(timed.get((scenario, r.algorithm), [])) >= chunks for r in arms):
+            continue
+        Console().print(f"timing {scenario}: {len(arms)} arms x {chunks} chunks, back to back")
+        for run, seconds in zip(arms, chunk_seconds([r.config for r in arms], chunks)):
+            timed[(scenario, run.algorithm)] = [s * 1000 / run.config.log_every for s in seconds]
+        rows = [
+            {"scenario": s, "arm": a, "chunk": j, "seconds_per_1000": x}
+            for (s, a), xs in timed.items()
+            for j, x in enumerate(xs)
+        ]
+        write_csv(path, rows)
+    return {key: np.array(xs) for key, xs in timed.items()}
 
 
 def mean_interval(x: np.ndarray) -> tuple[float, float]:
@@ -104,12 +183,42 @@ def relative_change(treated: np.ndarray, control: np.ndarray) -> tuple[float, fl
     return change, change - half, change + half, float(p)
 
 
+def paired_change(treated: np.ndarray, control: np.ndarray) -> tuple[float, float, float, float]:
+    """(% change of the means, 95% interval low, high, paired t-test p-value) of ``treated``
+    against ``control``, matched element by element (the same seeds)."""
+    treated, control = np.asarray(treated, float), np.asarray(control, float)
+    change = 100.0 * (treated.mean() - control.mean()) / abs(control.mean())
+    if len(treated) < 2:
+        return change, float("nan"), float("nan"), float("nan")
+    ratio = treated.mean() / control.mean()
+    # delta method for mean_t / mean_c with paired samples: the residuals t_s - ratio * c_s
+    se = np.std(treated - ratio * control, ddof=1) / np.sqrt(len(treated)) / abs(control.mean())
+    half = 100.0 * stats.t.ppf(0.975, len(treated) - 1) * se
+    differences = treated - control
+    p = stats.ttest_1samp(differences, 0.0).pvalue if differences.std() > 0 else float("nan")
+    return change, change - half, change + half, float(p)
+
+
+def pooled_change(pairs: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float, float, float, float]:
+    """(mean, 95% interval low, high, p-value) of the per-seed relative differences
+    ``100 * (treated_s - control_s) / |mean control|`` of every (treated, control) pair, pooled."""
+    pooled = np.concatenate([100.0 * (t - c) / abs(np.mean(c)) for t, c in pairs])
+    mean, half = mean_interval(pooled)
+    p = stats.ttest_1samp(pooled, 0.0).pvalue if len(pooled) > 1 and pooled.std() > 0 else float("nan")
+    return mean, mean - half, mean + half, float(p)
+
+
 TABLE1_COLUMNS = [
     "rovers",
+    "arm",
     "reward_change_pct",
     "reward_ci_low",
     "reward_ci_high",
     "reward_p",
+    "last_change_pct",
+    "last_ci_low",
+    "last_ci_high",
+    "last_p",
     "paper_reward_change_pct",
     "time_change_pct",
     "time_ci_low",
@@ -119,18 +228,42 @@ TABLE1_COLUMNS = [
 ]
 
 
-def table1(results: list[RunResult]) -> list[dict[str, float]]:
-    """One row per N with both MADDPG variants: Table I with intervals, p-values and the paper's values."""
-    by = {(r.rovers, r.run.algorithm): r for r in results}
+def optimizer_pairs(results: list[RunResult]) -> list[tuple[int, RunResult, RunResult]]:
+    """(N, optimizer arm, plain MADDPG) for every optimizer arm and N where both ran."""
+    plain = {r.rovers: r for r in results if r.run.algorithm == "maddpg"}
+    arms = list(dict.fromkeys(r.run.algorithm for r in results if is_optimizer(r.run.algorithm)))  # grid order
+    runs = sorted(
+        (r for r in results if r.run.algorithm in arms), key=lambda r: (arms.index(r.run.algorithm), r.rovers)
+    )
+    return [(r.rovers, r, plain[r.rovers]) for r in runs if r.rovers in plain]
+
+
+def table1(results: list[RunResult]) -> list[dict[str, object]]:
+    """One row per N and optimizer arm: Table I (maximum and last-window reward, paired; time)
+    with intervals, p-values and the paper's values."""
     rows = []
-    for n in sorted({r.rovers for r in results}):
-        plain, optimized = by.get((n, "maddpg")), by.get((n, "maddpg-optimizer"))
-        if plain is None or optimized is None:
-            continue
-        reward = relative_change(optimized.best, plain.best)
-        seconds = relative_change(optimized.chunk_seconds, plain.chunk_seconds)
+    for n, optimized, plain in optimizer_pairs(results):
+        reward = paired_change(optimized.best, plain.best)
+        last = paired_change(optimized.last, plain.last)
+        if optimized.timed is not None and plain.timed is not None:  # chunk j of each ran back to back
+            seconds = paired_change(optimized.timed, plain.timed)
+        else:
+            seconds = relative_change(optimized.chunk_seconds, plain.chunk_seconds)
         paper = PAPER_TABLE1.get(n, (float("nan"), float("nan")))
-        rows.append(dict(zip(TABLE1_COLUMNS, (n, *reward, paper[0], *seconds, paper[1]))))
+        values = (n, label(optimized.run.algorithm), *reward, *last, paper[0], *seconds, paper[1])
+        rows.append(dict(zip(TABLE1_COLUMNS, values)))
+    return rows
+
+
+def pooled_rows(results: list[RunResult]) -> list[dict[str, object]]:
+    """Per optimizer arm: its change against plain MADDPG pooled across N, for the maximum and
+    the last-window reward (:func:`pooled_change`)."""
+    rows = []
+    for arm in dict.fromkeys(r.run.algorithm for _, r, _ in optimizer_pairs(results)):
+        pairs = [(t, c) for _, t, c in optimizer_pairs(results) if t.run.algorithm == arm]
+        best = pooled_change([(t.best, c.best) for t, c in pairs])
+        last = pooled_change([(t.last, c.last) for t, c in pairs])
+        rows.append({"arm": label(arm), "sizes": len(pairs), "best": best, "last": last})
     return rows
 
 
@@ -138,20 +271,36 @@ def _fmt(x: float, digits: int = 2, suffix: str = "") -> str:
     return "n/a" if not np.isfinite(x) else f"{x:+.{digits}f}{suffix}"
 
 
-def table1_markdown(rows: list[dict[str, float]]) -> str:
+def _change(change: float, low: float, high: float, p: float) -> str:
+    """A change with its interval and p-value as table cells."""
+    return f"{_fmt(change)}% | [{_fmt(low)}, {_fmt(high)}] | {p:.3g}"
+
+
+def table1_markdown(rows: list[dict[str, object]]) -> str:
     lines = [
-        "| N | episode reward change (ours) | 95% CI | p | paper | time per 1000 episodes change "
-        "(ours) | 95% CI | p | paper |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| N | optimizer arm | max reward change (ours) | 95% CI | p | last-window reward change | 95% CI | p "
+        "| paper | time per 1000 episodes change (ours) | 95% CI | p | paper |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        lines.append(
-            f"| {r['rovers']} | {_fmt(r['reward_change_pct'])}% | [{_fmt(r['reward_ci_low'])}, "
-            f"{_fmt(r['reward_ci_high'])}] "
-            f"| {r['reward_p']:.3g} | {_fmt(r['paper_reward_change_pct'], suffix='%')} | {_fmt(r['time_change_pct'])}% "
-            f"| [{_fmt(r['time_ci_low'])}, {_fmt(r['time_ci_high'])}] | {r['time_p']:.3g} | "
-            f"{_fmt(r['paper_time_change_pct'], suffix='%')} |"
-        )
+        cells = [str(r["rovers"]), str(r["arm"])]
+        for part in ("reward", "last"):
+            cells.append(_change(*(r[f"{part}_{k}"] for k in ("change_pct", "ci_low", "ci_high", "p"))))
+        cells.append(_fmt(r["paper_reward_change_pct"], suffix="%"))
+        cells.append(_change(*(r[f"time_{k}"] for k in ("change_pct", "ci_low", "ci_high", "p"))))
+        cells.append(_fmt(r["paper_time_change_pct"], suffix="%"))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def pooled_markdown(rows: list[dict[str, object]]) -> str:
+    lines = [
+        "| optimizer arm | sizes N | max reward change, pooled | 95% CI | p "
+        "| last-window change, pooled | 95% CI | p |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(f"| {r['arm']} | {r['sizes']} | {_change(*r['best'])} | {_change(*r['last'])} |")
     return "\n".join(lines) + "\n"
 
 
@@ -168,10 +317,10 @@ def figure8(results: list[RunResult], path: Path) -> None:
     """(a) maximum mean episode reward and (b) time per 1000 episodes, per N and algorithm."""
     fig, axes = _figure(11, 4, (1, 2))
     sizes = sorted({r.rovers for r in results})
-    algorithms = [a for a in LABELS if any(r.run.algorithm == a for r in results)]
+    algorithms = sorted(dict.fromkeys(r.run.algorithm for r in results), key=_order)
     width = 0.8 / len(algorithms)
     for k, algorithm in enumerate(algorithms):
-        for ax, value in zip(axes[0], (lambda r: r.best, lambda r: r.chunk_seconds)):
+        for ax, value in zip(axes[0], (lambda r: r.best, lambda r: r.seconds)):
             stats_ = [
                 mean_interval(value(r))
                 for n in sizes
@@ -189,7 +338,7 @@ def figure8(results: list[RunResult], path: Path) -> None:
                 width,
                 yerr=[np.nan_to_num(h) for _, h in stats_],
                 capsize=3,
-                label=LABELS[algorithm],
+                label=label(algorithm),
             )
     for ax, title, ylabel in zip(
         axes[0],
@@ -215,7 +364,7 @@ def figure9(results: list[RunResult], path: Path) -> None:
         for r in (r for r in results if r.rovers == n):
             mean = r.curves.mean(axis=0)
             half = np.nan_to_num(np.array([mean_interval(c)[1] for c in r.curves.T]))
-            ax.plot(r.episodes, mean, label=LABELS[r.run.algorithm])
+            ax.plot(r.episodes, mean, label=label(r.run.algorithm))
             ax.fill_between(r.episodes, mean - half, mean + half, alpha=0.2)
         ax.set_title(f"N = {n} ({results[0].run.config.seeds} seeds)")
         ax.set_xlabel("episodes")
@@ -227,25 +376,28 @@ def figure9(results: list[RunResult], path: Path) -> None:
     fig.savefig(path)
 
 
-def verdicts(results: list[RunResult], rows: list[dict[str, float]]) -> list[str]:
+def verdicts(results: list[RunResult], rows: list[dict[str, object]]) -> list[str]:
     """Plain statements of whether the numbers support the paper's two claims."""
     lines = []
-    if len(rows) >= 2:
-        sizes = [r["rovers"] for r in rows]
-        changes = [r["reward_change_pct"] for r in rows]
+    for arm in dict.fromkeys(r["arm"] for r in rows):
+        mine = [r for r in rows if r["arm"] == arm]
+        if len(mine) < 2:
+            lines.append(f"- *{arm} helps more as N grows*: needs at least two swarm sizes with both arms.")
+            continue
+        sizes = [r["rovers"] for r in mine]
+        changes = [r["reward_change_pct"] for r in mine]
         slope = float(np.polyfit(sizes, changes, 1)[0])
-        significant = sum(1 for r in rows if r["reward_p"] < 0.05 and r["reward_change_pct"] > 0)
+        significant = sum(1 for r in mine if r["reward_p"] < 0.05 and r["reward_change_pct"] > 0)
         grows = slope > 0 and changes[-1] > 0
         lines.append(
-            "- *The optimizer helps more as N grows*: "
+            f"- *{arm} helps more as N grows*: "
             f"{'supported' if grows and significant else 'not supported'} by our runs. "
-            f"Its reward change goes {', '.join(f'{c:+.1f}%' for c in changes)} for N = {', '.join(map(str, sizes))} "
-            f"(trend {slope:+.2f} points per rover); {significant} of {len(rows)} changes are positive with p < 0.05."
+            f"Its maximum-reward change against MADDPG goes {', '.join(f'{c:+.1f}%' for c in changes)} for "
+            f"N = {', '.join(map(str, sizes))} (trend {slope:+.2f} points per rover); {significant} of {len(mine)} "
+            "changes are positive with p < 0.05 (paired over seeds)."
         )
-    else:
-        lines.append(
-            "- *The optimizer helps more as N grows*: needs at least two swarm sizes with both MADDPG variants."
-        )
+    if not rows:
+        lines.append("- *The optimizer helps more as N grows*: needs MADDPG and an optimizer arm at the same N.")
     by = {(r.rovers, r.run.algorithm): r for r in results}
     pairs = [
         (n, by[(n, "maddpg")], by[(n, "ddpg")])
@@ -287,26 +439,82 @@ def _versions() -> str:
     return ", ".join([f"python {sys.version.split()[0]}", *found])
 
 
+def final_policies(results: list[RunResult], episodes: int) -> list[dict[str, object]]:
+    """Every run's final policies evaluated deterministically beside random and the oracle (kept
+    in each run folder as ``evaluation.csv``): one row per run, every seed's score."""
+    rows = []
+    for r in sorted(results, key=lambda r: (r.rovers, _order(r.run.algorithm))):
+        row = table_row(r.run, evaluation(r.run, episodes))
+        rows.append({"rovers": r.rovers, "arm": label(r.run.algorithm), **row})
+    return rows
+
+
+def _final_markdown(rows: list[dict[str, object]]) -> str:
+    lines = [
+        "| N | arm | score, every seed | mean score | POIs observed | collisions | trap contacts (oracle) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['rovers']} | {r['arm']} | {r['scores']} | {r['mean_score']:.2f} | {r['pois_observed']:.2f} "
+            f"| {r['collisions']:.2f} | {r['trap_contacts']:.2f} ({r['oracle_trap_contacts']:.2f}) |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def _arm_settings(results: list[RunResult]) -> list[str]:
+    """One line per optimizer arm: its ranked replay's settings."""
+    names = ("reading", "alpha", "beta", "refresh_every", "importance_weights", "importance_exponent")
+    lines = {}
+    for r in results:
+        if is_optimizer(r.run.algorithm):
+            replay = r.run.config.buffer
+            options = ", ".join(f"{n}={getattr(replay, n)}" for n in names)
+            lines.setdefault(r.run.algorithm, f"  - {label(r.run.algorithm)}: {options}")
+    return [lines[a] for a in sorted(lines, key=_order)]
+
+
 def write_report(
-    config: ReproduceConfig, results: list[RunResult], rows: list[dict[str, float]], elapsed: float
+    config: ReproduceConfig,
+    results: list[RunResult],
+    rows: list[dict[str, object]],
+    final: list[dict[str, object]],
+    elapsed: float,
 ) -> Path:
     """``report.md``: settings, machine, versions, wall time, tables, figures and verdicts."""
     per_run = [
-        "| N | algorithm | max mean episode reward (mean, 95% CI) | s / 1000 episodes (mean, 95% CI) |",
-        "|---|---|---|---|",
+        "| N | arm | max mean episode reward (mean, 95% CI) | last-window reward (mean, 95% CI) "
+        "| s / 1000 episodes (mean, 95% CI) |",
+        "|---|---|---|---|---|",
     ]
-    for r in sorted(results, key=lambda r: (r.rovers, list(LABELS).index(r.run.algorithm))):
-        (m, h), (t, th) = mean_interval(r.best), mean_interval(r.chunk_seconds)
-        per_run.append(f"| {r.rovers} | {LABELS[r.run.algorithm]} | {m:.2f} ± {h:.2f} | {t:.2f} ± {th:.2f} |")
+    for r in sorted(results, key=lambda r: (r.rovers, _order(r.run.algorithm))):
+        (m, h), (w, wh), (t, th) = mean_interval(r.best), mean_interval(r.last), mean_interval(r.seconds)
+        per_run.append(
+            f"| {r.rovers} | {label(r.run.algorithm)} | {m:.2f} ± {h:.2f} | {w:.2f} ± {wh:.2f} | {t:.2f} ± {th:.2f} |"
+        )
     training = sum(float(r.chunk_seconds.sum()) for r in results)
-    example = results[0].run.config
+    example = next((r.run.config for r in results if r.run.algorithm == "maddpg"), results[0].run.config)
+    arms = ", ".join(label(a) for a in sorted(dict.fromkeys(r.run.algorithm for r in results), key=_order))
+    if any(r.timed is not None for r in results):
+        time_note = (
+            f"Time: {config.grid_time_chunks} chunks of 1000 episodes (all seeds) per arm, timed back to back after "
+            "training with the replay full, chunk j of each arm paired (`timing.csv`; on-policy arms: their rows)."
+        )
+    else:
+        time_note = (
+            "Time: one value per 1000-episode row of the run (all seeds together), the first row left out "
+            "(Welch interval and test); other load on the machine while the runs trained shifts these."
+        )
     text = f"""# roverswarm reproduce: the paper's Table I and Figures 8-9
 
 ## Settings
-- Grid: scenarios {", ".join(config.scenarios)} x {", ".join(LABELS[a] for a in config.algorithms)}; \
-{example.seeds} seeds per run (vmapped), {example.episodes} episodes per seed{" (--quick)" if config.quick else ""}.
-- One run's full training configuration (the grid sets scenario, algorithm, replay, episodes, seeds and seed; \
-the rest is the same for every run of the paper's learners; MAPPO and IPPO start from their own presets, \
+- Grid: scenarios {", ".join(config.scenarios)} x {arms}; \
+{example.seeds} seeds per run (vmapped), {example.episodes} episodes per seed{" (--quick)" if config.quick else ""}; \
+the paper's learners at `--preset {config.preset}`.
+- Optimizer arms (the ranked replay's settings; the rest as plain MADDPG's):
+{chr(10).join(_arm_settings(results))}
+- Plain MADDPG's full training configuration (the grid sets scenario, algorithm, replay, episodes, seeds and \
+seed; the rest is the same for every run of the paper's learners; MAPPO and IPPO start from their own presets, \
 stored in their runs' `config.json`):
 
 ```json
@@ -323,10 +531,20 @@ counted); training time recorded in the runs' metrics (all runs, all chunks, whi
 ## Table I: MADDPG + experience sample optimizer vs MADDPG
 
 {table1_markdown(rows)}
-Relative changes of the means, `100 * (optimizer - plain) / |plain|`; 95% delta-method intervals (Welch df);
-two-sided Welch t-test p-values. Rewards: one maximum mean episode reward per seed.
-Time: one value per 1000-episode row (all seeds together), the first row of each run left out.
+Relative changes of the means, `100 * (optimizer - plain) / |plain|`. Rewards: per seed, the maximum mean
+episode reward and the mean over the last {LAST_WINDOW} episodes (training rows, noise on), compared paired
+over the seeds the arms share (delta-method 95% intervals, paired t-test p-values).
+{time_note}
 
+Pooled across N (every seed's relative difference, one-sample t-test):
+
+{pooled_markdown(pooled_rows(results))}
+## Final policies, deterministic evaluation
+
+Every seed's final policy on the same {config.grid_eval_episodes} episodes as the random (score 0)
+and oracle (score 1) policies; normalised score `(R - R_random) / (R_oracle - R_random)`.
+
+{_final_markdown(final)}
 ## Every run
 
 {chr(10).join(per_run)}
@@ -346,27 +564,28 @@ Time: one value per 1000-episode row (all seeds together), the first row of each
     return path
 
 
-def reproduce(config: ReproduceConfig, base: TrainConfig = REFERENCE, live: bool = True) -> Path:
-    """Run (or finish) the grid, then write table1.md/.csv, fig8.png, fig9.png and report.md.
+def reproduce(config: ReproduceConfig, base: TrainConfig | None = None, live: bool = True) -> Path:
+    """Run (or finish) the grid, then write table1.md/.csv, final_policies.csv, fig8.png,
+    fig9.png and report.md.
 
-    ``base`` holds the training settings of every run (default: the paper's); the grid sets
-    its scenario, algorithm, replay, episodes, seeds and seed. One writer at a time: the
-    folder is locked while the grid runs."""
+    ``base`` holds the training settings of the paper's learners (default: ``config.preset``'s);
+    the grid sets its scenario, algorithm, replay, ensembles, inferred policies, episodes, seeds
+    and seed. One writer at a time: the folder is locked while the grid runs."""
     with folder_lock(Path(config.out)):
-        return _reproduce(config, base, live)
+        return _reproduce(config, PRESETS[config.preset] if base is None else base, live)
 
 
 def _reproduce(config: ReproduceConfig, base: TrainConfig, live: bool) -> Path:
     start = time.perf_counter()
     runs = run_grid(config, base, live=live)
-    results = [load(run) for run in runs]
+    timed = time_arms(config, runs)
+    results = [load(run, timed) for run in runs]
     rows = table1(results)
+    final = final_policies(results, config.grid_eval_episodes)
     config.out.mkdir(parents=True, exist_ok=True)
-    with open(config.out / "table1.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=TABLE1_COLUMNS)
-        writer.writeheader()
-        writer.writerows(rows)
+    write_csv(config.out / "table1.csv", rows, TABLE1_COLUMNS)
+    write_csv(config.out / "final_policies.csv", final)
     (config.out / "table1.md").write_text(table1_markdown(rows))
     figure8(results, config.out / "fig8.png")
     figure9(results, config.out / "fig9.png")
-    return write_report(config, results, rows, time.perf_counter() - start)
+    return write_report(config, results, rows, final, time.perf_counter() - start)
