@@ -28,7 +28,7 @@ from rich.table import Table
 from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import RunStopped, UserError, require
 from roverswarm.jaxcache import release_compiled_programs
-from roverswarm.config import PRESETS, REFERENCE, TrainConfig, config_from_json, config_to_json, with_options, validate
+from roverswarm.config import PRESETS, TrainConfig, config_from_json, config_to_json, with_options, validate
 from roverswarm.runs import CHECKPOINT, CONFIG, METRICS, read_metrics
 from roverswarm.trainer import physical_memory, run_memory, train
 
@@ -72,7 +72,7 @@ class ReproduceConfig:
     """Output folder: runs/, table1.md/.csv, fig8.png, fig9.png, report.md."""
     quick: bool = False
     """A small grid that finishes in minutes on a 2-core CPU: 2 seeds, 2000 episodes per run,
-    metrics every 500 episodes (the learners keep the paper's settings)."""
+    metrics every 500 episodes (the learners keep their preset's settings)."""
     scenarios: tuple[str, ...] = ("paper-2", "paper-3", "paper-4", "paper-5")
     """Scenario presets, one per swarm size N."""
     algorithms: tuple[Algorithm, ...] = ("ddpg", "maddpg", "maddpg-optimizer")
@@ -205,11 +205,12 @@ def is_optimizer(algorithm: str) -> bool:
     return algorithm == OPTIMIZER or algorithm.startswith(OPTIMIZER + "-")
 
 
-def plan(config: ReproduceConfig, base: TrainConfig = REFERENCE) -> list[GridRun]:
-    """The runs of the grid, at the settings of ``base`` (default: the reference preset) with
+def plan(config: ReproduceConfig, base: TrainConfig | None = None) -> list[GridRun]:
+    """The runs of the grid, at the settings of ``base`` (default: ``config.preset``'s) with
     the grid's ensembles, inferred policies and optimizer arms, after checking the input. An
     arm naming a preset (MAPPO, IPPO) starts from that preset instead, with ``base``'s
     logging and checkpoint intervals."""
+    base = PRESETS[config.preset] if base is None else base
     require(len(config.scenarios) > 0, "--scenarios: give at least one scenario")
     for name in config.scenarios:
         require(name in SCENARIOS, f"--scenarios: unknown scenario '{name}'; known: {', '.join(SCENARIOS)}")
@@ -469,7 +470,7 @@ def run_ray(runs: list[GridRun], summary: Summary, address: str | None, retries:
         summary.finish(run)
 
 
-def run_grid(config: ReproduceConfig, base: TrainConfig = REFERENCE, live: bool = True) -> list[GridRun]:
+def run_grid(config: ReproduceConfig, base: TrainConfig | None = None, live: bool = True) -> list[GridRun]:
     """Train every run of the grid that is not finished yet; returns all runs of the grid."""
     runs = plan(config, base)
     for run in runs:

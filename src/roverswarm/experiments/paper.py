@@ -50,7 +50,8 @@ from roverswarm.env.scenarios import get_scenario
 from roverswarm.experiments.grid import OPTIMIZER, GridRun, ReproduceConfig, is_optimizer, run_grid
 from roverswarm.experiments.sweep import evaluation, table_row
 from roverswarm.experiments.timing import chunk_seconds
-from roverswarm.config import PRESETS, TrainConfig, config_to_json
+from roverswarm.jaxcache import release_compiled_programs
+from roverswarm.config import TrainConfig, config_to_json
 from roverswarm.runs import METRICS, folder_lock, read_metrics, write_csv
 
 PAPER_TABLE1: dict[int, tuple[float, float]] = {2: (1.42, 2.26), 3: (3.08, 2.50), 4: (4.71, 2.69), 5: (8.78, 1.79)}
@@ -446,6 +447,7 @@ def final_policies(results: list[RunResult], episodes: int) -> list[dict[str, ob
     for r in sorted(results, key=lambda r: (r.rovers, _order(r.run.algorithm))):
         row = table_row(r.run, evaluation(r.run, episodes))
         rows.append({"rovers": r.rovers, "arm": label(r.run.algorithm), **row})
+        release_compiled_programs(only_if_crowded=True)  # each run's policies compile their own rollouts
     return rows
 
 
@@ -572,10 +574,10 @@ def reproduce(config: ReproduceConfig, base: TrainConfig | None = None, live: bo
     the grid sets its scenario, algorithm, replay, ensembles, inferred policies, episodes, seeds
     and seed. One writer at a time: the folder is locked while the grid runs."""
     with folder_lock(Path(config.out)):
-        return _reproduce(config, PRESETS[config.preset] if base is None else base, live)
+        return _reproduce(config, base, live)
 
 
-def _reproduce(config: ReproduceConfig, base: TrainConfig, live: bool) -> Path:
+def _reproduce(config: ReproduceConfig, base: TrainConfig | None, live: bool) -> Path:
     start = time.perf_counter()
     runs = run_grid(config, base, live=live)
     timed = time_arms(config, runs)
