@@ -35,7 +35,7 @@ def base(tiny_config):
 
 def tiny_grid(out: Path, **changes) -> ReproduceConfig:
     """A grid of tiny runs, trained in this process unless ``changes`` say otherwise."""
-    defaults = {"out": out, "scenarios": SCENARIOS, "seeds": 2, "episodes": 400, "jobs": 1, "eval_episodes": 50}
+    defaults = dict(out=out, scenarios=SCENARIOS, seeds=2, episodes=400, jobs=1, eval_episodes=50, keep_programs=True)
     return ReproduceConfig(**{**defaults, **changes})
 
 

@@ -440,14 +440,15 @@ def _versions() -> str:
     return ", ".join([f"python {sys.version.split()[0]}", *found])
 
 
-def final_policies(results: list[RunResult], episodes: int) -> list[dict[str, object]]:
+def final_policies(results: list[RunResult], episodes: int, keep_programs: bool = False) -> list[dict[str, object]]:
     """Every run's final policies evaluated deterministically beside random and the oracle (kept
-    in each run folder as ``evaluation.csv``): one row per run, every seed's score."""
+    in each run folder as ``evaluation.csv``): one row per run, every seed's score. Each
+    run's rollout programs are released after it (with ``keep_programs``, only when crowded)."""
     rows = []
     for r in sorted(results, key=lambda r: (r.rovers, _order(r.run.algorithm))):
         row = table_row(r.run, evaluation(r.run, episodes))
         rows.append({"rovers": r.rovers, "arm": label(r.run.algorithm), **row})
-        release_compiled_programs(only_if_crowded=True)  # each run's policies compile their own rollouts
+        release_compiled_programs(only_if_crowded=keep_programs)
     return rows
 
 
@@ -583,7 +584,7 @@ def _reproduce(config: ReproduceConfig, base: TrainConfig | None, live: bool) ->
     timed = time_arms(config, runs)
     results = [load(run, timed) for run in runs]
     rows = table1(results)
-    final = final_policies(results, config.grid_eval_episodes)
+    final = final_policies(results, config.grid_eval_episodes, config.keep_programs)
     config.out.mkdir(parents=True, exist_ok=True)
     write_csv(config.out / "table1.csv", rows, TABLE1_COLUMNS)
     write_csv(config.out / "final_policies.csv", final)
