@@ -277,32 +277,35 @@ def _change(change: float, low: float, high: float, p: float) -> str:
     return f"{_fmt(change)}% | [{_fmt(low)}, {_fmt(high)}] | {p:.3g}"
 
 
+def _markdown(header: list[str], rows: list[list[str]]) -> str:
+    """A Markdown table of the ``header`` cells and ``rows`` (a cell may hold several, joined by " | ")."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * sum(h.count("|") + 1 for h in header)]
+    return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows]) + "\n"
+
+
 def table1_markdown(rows: list[dict[str, object]]) -> str:
-    lines = [
-        "| N | optimizer arm | max reward change (ours) | 95% CI | p | last-window reward change | 95% CI | p "
-        "| paper | time per 1000 episodes change (ours) | 95% CI | p | paper |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    change = lambda r, part: _change(*(r[f"{part}_{k}"] for k in ("change_pct", "ci_low", "ci_high", "p")))  # noqa: E731
+    header = ["N", "optimizer arm", "max reward change (ours) | 95% CI | p", "last-window reward change | 95% CI | p"]
+    header += ["paper", "time per 1000 episodes change (ours) | 95% CI | p", "paper"]
+    body = [
+        [
+            str(r["rovers"]),
+            str(r["arm"]),
+            change(r, "reward"),
+            change(r, "last"),
+            _fmt(r["paper_reward_change_pct"], suffix="%"),
+            change(r, "time"),
+            _fmt(r["paper_time_change_pct"], suffix="%"),
+        ]
+        for r in rows
     ]
-    for r in rows:
-        cells = [str(r["rovers"]), str(r["arm"])]
-        for part in ("reward", "last"):
-            cells.append(_change(*(r[f"{part}_{k}"] for k in ("change_pct", "ci_low", "ci_high", "p"))))
-        cells.append(_fmt(r["paper_reward_change_pct"], suffix="%"))
-        cells.append(_change(*(r[f"time_{k}"] for k in ("change_pct", "ci_low", "ci_high", "p"))))
-        cells.append(_fmt(r["paper_time_change_pct"], suffix="%"))
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+    return _markdown(header, body)
 
 
 def pooled_markdown(rows: list[dict[str, object]]) -> str:
-    lines = [
-        "| optimizer arm | sizes N | max reward change, pooled | 95% CI | p "
-        "| last-window change, pooled | 95% CI | p |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        lines.append(f"| {r['arm']} | {r['sizes']} | {_change(*r['best'])} | {_change(*r['last'])} |")
-    return "\n".join(lines) + "\n"
+    header = ["optimizer arm", "sizes N", "max reward change, pooled | 95% CI | p"]
+    header.append("last-window change, pooled | 95% CI | p")
+    return _markdown(header, [[str(r["arm"]), str(r["sizes"]), _change(*r["best"]), _change(*r["last"])] for r in rows])
 
 
 def _figure(width: float, height: float, panels: tuple[int, int]):
@@ -453,16 +456,20 @@ def final_policies(results: list[RunResult], episodes: int, keep_programs: bool 
 
 
 def _final_markdown(rows: list[dict[str, object]]) -> str:
-    lines = [
-        "| N | arm | score, every seed | mean score | POIs observed | collisions | trap contacts (oracle) |",
-        "|---|---|---|---|---|---|---|",
+    header = ["N", "arm", "score, every seed", "mean score", "POIs observed", "collisions", "trap contacts (oracle)"]
+    body = [
+        [
+            str(r["rovers"]),
+            str(r["arm"]),
+            str(r["scores"]),
+            f"{r['mean_score']:.2f}",
+            f"{r['pois_observed']:.2f}",
+            f"{r['collisions']:.2f}",
+            f"{r['trap_contacts']:.2f} ({r['oracle_trap_contacts']:.2f})",
+        ]
+        for r in rows
     ]
-    for r in rows:
-        lines.append(
-            f"| {r['rovers']} | {r['arm']} | {r['scores']} | {r['mean_score']:.2f} | {r['pois_observed']:.2f} "
-            f"| {r['collisions']:.2f} | {r['trap_contacts']:.2f} ({r['oracle_trap_contacts']:.2f}) |"
-        )
-    return "\n".join(lines) + "\n"
+    return _markdown(header, body)
 
 
 def _arm_settings(results: list[RunResult]) -> list[str]:
@@ -485,16 +492,13 @@ def write_report(
     elapsed: float,
 ) -> Path:
     """``report.md``: settings, machine, versions, wall time, tables, figures and verdicts."""
-    per_run = [
-        "| N | arm | max mean episode reward (mean, 95% CI) | last-window reward (mean, 95% CI) "
-        "| s / 1000 episodes (mean, 95% CI) |",
-        "|---|---|---|---|---|",
-    ]
+    header = ["N", "arm", "max mean episode reward (mean, 95% CI)", "last-window reward (mean, 95% CI)"]
+    header.append("s / 1000 episodes (mean, 95% CI)")
+    body = []
     for r in sorted(results, key=lambda r: (r.rovers, _order(r.run.algorithm))):
-        (m, h), (w, wh), (t, th) = mean_interval(r.best), mean_interval(r.last), mean_interval(r.seconds)
-        per_run.append(
-            f"| {r.rovers} | {label(r.run.algorithm)} | {m:.2f} ± {h:.2f} | {w:.2f} ± {wh:.2f} | {t:.2f} ± {th:.2f} |"
-        )
+        cells = [f"{m:.2f} ± {h:.2f}" for m, h in map(mean_interval, (r.best, r.last, r.seconds))]
+        body.append([str(r.rovers), label(r.run.algorithm), *cells])
+    per_run = _markdown(header, body)
     training = sum(float(r.chunk_seconds.sum()) for r in results)
     example = next((r.run.config for r in results if r.run.algorithm == "maddpg"), results[0].run.config)
     arms = ", ".join(label(a) for a in sorted(dict.fromkeys(r.run.algorithm for r in results), key=_order))
@@ -550,7 +554,7 @@ and oracle (score 1) policies; normalised score `(R - R_random) / (R_oracle - R_
 {_final_markdown(final)}
 ## Every run
 
-{chr(10).join(per_run)}
+{per_run}
 
 ## Figures
 
