@@ -153,9 +153,8 @@ def _write_rows(rows: list[dict[str, object]], path: Path) -> None:
 
 
 def markdown_table(header: list[str], rows: list[list[object]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(_fmt(v) for v in row) + " |" for row in rows]
-    return "\n".join(lines) + "\n"
+    """:func:`roverswarm.runs.markdown_table` with the values formatted for mission reports."""
+    return runs.markdown_table(header, [[_fmt(v) for v in row] for row in rows])
 
 
 def mission_report(stats: MissionStats, mission: Mission, policy: str, fail_step: np.ndarray) -> str:

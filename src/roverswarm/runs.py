@@ -264,6 +264,12 @@ def write_csv(path: Path, rows: list[dict], columns: list[str] | None = None) ->
     atomic_write(path, write)
 
 
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
+    """A Markdown table of the ``header`` cells and ``rows`` (a cell may hold several, joined by " | ")."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * sum(h.count("|") + 1 for h in header)]
+    return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows]) + "\n"
+
+
 COUNT_COLUMNS = ("seed", "episodes")
 """Integer columns of ``metrics.csv``; kept integers when a resumed run rewrites the file."""
 

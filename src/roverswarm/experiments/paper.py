@@ -52,7 +52,7 @@ from roverswarm.experiments.sweep import evaluation, table_row
 from roverswarm.experiments.timing import chunk_seconds
 from roverswarm.jaxcache import release_compiled_programs
 from roverswarm.config import TrainConfig, config_to_json
-from roverswarm.runs import METRICS, folder_lock, read_metrics, write_csv
+from roverswarm.runs import METRICS, folder_lock, markdown_table, read_metrics, write_csv
 
 PAPER_TABLE1: dict[int, tuple[float, float]] = {2: (1.42, 2.26), 3: (3.08, 2.50), 4: (4.71, 2.69), 5: (8.78, 1.79)}
 """The paper's Table I: N -> (% change in episode reward, % change in training time)."""
@@ -260,8 +260,9 @@ def pooled_rows(results: list[RunResult]) -> list[dict[str, object]]:
     """Per optimizer arm: its change against plain MADDPG pooled across N, for the maximum and
     the last-window reward (:func:`pooled_change`)."""
     rows = []
-    for arm in dict.fromkeys(r.run.algorithm for _, r, _ in optimizer_pairs(results)):
-        pairs = [(t, c) for _, t, c in optimizer_pairs(results) if t.run.algorithm == arm]
+    every = optimizer_pairs(results)
+    for arm in dict.fromkeys(t.run.algorithm for _, t, _ in every):
+        pairs = [(t, c) for _, t, c in every if t.run.algorithm == arm]
         best = pooled_change([(t.best, c.best) for t, c in pairs])
         last = pooled_change([(t.last, c.last) for t, c in pairs])
         rows.append({"arm": label(arm), "sizes": len(pairs), "best": best, "last": last})
@@ -275,12 +276,6 @@ def _fmt(x: float, digits: int = 2, suffix: str = "") -> str:
 def _change(change: float, low: float, high: float, p: float) -> str:
     """A change with its interval and p-value as table cells."""
     return f"{_fmt(change)}% | [{_fmt(low)}, {_fmt(high)}] | {p:.3g}"
-
-
-def _markdown(header: list[str], rows: list[list[str]]) -> str:
-    """A Markdown table of the ``header`` cells and ``rows`` (a cell may hold several, joined by " | ")."""
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * sum(h.count("|") + 1 for h in header)]
-    return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows]) + "\n"
 
 
 def table1_markdown(rows: list[dict[str, object]]) -> str:
@@ -299,13 +294,15 @@ def table1_markdown(rows: list[dict[str, object]]) -> str:
         ]
         for r in rows
     ]
-    return _markdown(header, body)
+    return markdown_table(header, body)
 
 
 def pooled_markdown(rows: list[dict[str, object]]) -> str:
     header = ["optimizer arm", "sizes N", "max reward change, pooled | 95% CI | p"]
     header.append("last-window change, pooled | 95% CI | p")
-    return _markdown(header, [[str(r["arm"]), str(r["sizes"]), _change(*r["best"]), _change(*r["last"])] for r in rows])
+    return markdown_table(
+        header, [[str(r["arm"]), str(r["sizes"]), _change(*r["best"]), _change(*r["last"])] for r in rows]
+    )
 
 
 def _figure(width: float, height: float, panels: tuple[int, int]):
@@ -469,7 +466,7 @@ def _final_markdown(rows: list[dict[str, object]]) -> str:
         ]
         for r in rows
     ]
-    return _markdown(header, body)
+    return markdown_table(header, body)
 
 
 def _arm_settings(results: list[RunResult]) -> list[str]:
@@ -498,7 +495,7 @@ def write_report(
     for r in sorted(results, key=lambda r: (r.rovers, _order(r.run.algorithm))):
         cells = [f"{m:.2f} ± {h:.2f}" for m, h in map(mean_interval, (r.best, r.last, r.seconds))]
         body.append([str(r.rovers), label(r.run.algorithm), *cells])
-    per_run = _markdown(header, body)
+    per_run = markdown_table(header, body)
     training = sum(float(r.chunk_seconds.sum()) for r in results)
     example = next((r.run.config for r in results if r.run.algorithm == "maddpg"), results[0].run.config)
     arms = ", ".join(label(a) for a in sorted(dict.fromkeys(r.run.algorithm for r in results), key=_order))

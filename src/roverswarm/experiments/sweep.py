@@ -42,7 +42,7 @@ from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
 from roverswarm.experiments.grid import GridRun, Summary, run_local, status
 from roverswarm.config import PRESETS, validate, with_options
-from roverswarm.runs import METRICS, folder_lock, read_metrics, write_csv
+from roverswarm.runs import METRICS, folder_lock, markdown_table, read_metrics, write_csv
 
 EVALUATION = "evaluation.csv"
 
@@ -172,9 +172,7 @@ def markdown(rows: list[dict[str, object]]) -> str:
     """The sweep table in Markdown (numbers to 2 decimals)."""
     header = list(rows[0])
     cell = lambda v: f"{v:.2f}" if isinstance(v, float) else str(v)  # noqa: E731
-    lines = ["| " + " | ".join(h.replace("_", " ") for h in header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(cell(r[h]) for h in header) + " |" for r in rows]
-    return "\n".join(lines) + "\n"
+    return markdown_table([h.replace("_", " ") for h in header], [[cell(r[h]) for h in header] for r in rows])
 
 
 def sweep(config: SweepConfig, live: bool = True) -> Path:
