@@ -16,9 +16,9 @@ from roverswarm.cli import main
 from roverswarm.config import with_options
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
-from roverswarm.experiments.sweep import SweepConfig, load_sweep, sweep
+from roverswarm.experiments.sweep import SweepConfig, load_sweep, read_table, sweep
 from roverswarm.rollout import rollout
-from roverswarm.runs import Run
+from roverswarm.runs import Run, write_csv
 
 TINY_PPO = dict(num_envs=4, log_every=100, checkpoint_every=1, hidden=[16], epochs=2, minibatches=2)
 TINY = dict(num_envs=4, batch_size=64, buffer_size=4000, warmup=500, log_every=100, checkpoint_every=1, hidden=[32, 32])
@@ -113,3 +113,32 @@ def test_bad_sweep_files_are_one_line_and_exit_2(spec, message, tmp_path, capsys
     assert main(["sweep", str(path), "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
+
+
+def test_the_score_against_n_script_joins_tables_by_rover_count(finished, tmp_path, monkeypatch, capsys):
+    """docs/results/swarm/score_vs_n.py: the paper-N rows of several sweep tables, labelled with
+    their budget and sorted by N; other scenarios are left out."""
+    import runpy
+    import sys
+    from pathlib import Path
+
+    config, _ = finished
+    rows = read_table(config.out / "sweep.csv")
+    other = tmp_path / "other.csv"
+    write_csv(other, [{**rows[1], "scenario": "paper-1"}, {**rows[0], "scenario": "spread-3", "episodes": 60000}])
+    out = tmp_path / "combined"
+    script = Path(__file__).parents[1] / "docs" / "results" / "swarm" / "score_vs_n.py"
+    monkeypatch.setattr(sys, "argv", ["score_vs_n.py", str(config.out / "sweep.csv"), str(other), "--out", str(out)])
+    runpy.run_path(str(script), run_name="__main__")
+    combined = read_table(out.with_suffix(".csv"))
+    assert [(r["scenario"], r["setting"]) for r in combined] == [
+        ("paper-1", "plain (0.4k)"),
+        ("paper-2", "mappo (0.4k)"),
+        ("paper-2", "plain (0.4k)"),
+        ("paper-2", "shared-td3 (0.4k)"),
+    ]
+    assert [r["scores"] for r in combined[1:]] == [r["scores"] for r in rows]
+    assert combined[0]["train_minutes"] == pytest.approx(rows[1]["train_minutes"])
+    assert "| paper-1 | plain (0.4k) | 2 |" in out.with_suffix(".md").read_text()
+    assert out.with_suffix(".png").stat().st_size > 10_000
+    assert "4 rows" in capsys.readouterr().out

@@ -42,7 +42,7 @@ from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
 from roverswarm.experiments.grid import GridRun, Summary, run_local, status
 from roverswarm.config import PRESETS, validate, with_options
-from roverswarm.runs import METRICS, folder_lock, markdown_table, read_metrics, write_csv
+from roverswarm.runs import METRICS, atomic_write, folder_lock, markdown_table, read_metrics, write_csv
 
 EVALUATION = "evaluation.csv"
 
@@ -107,8 +107,7 @@ def evaluation(run: GridRun, episodes: int) -> list[dict[str, object]]:
 
     path = run.folder / EVALUATION
     if path.exists():
-        with open(path, newline="") as f:
-            rows = [{k: v if k == "policy" else float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+        rows = read_table(path)
         if int(rows[0].get("episodes", -1)) == episodes:
             return rows
     rows = [{**row, "episodes": episodes} for row in evaluate_run(run.folder, episodes)]
@@ -142,13 +141,13 @@ def table_row(run: GridRun, rows: list[dict[str, object]]) -> dict[str, object]:
 
 
 def figure(rows: list[dict[str, object]], path: Path) -> None:
-    """Every seed's score (dots) and their mean (line) per scenario, one colour per setting,
-    beside random (0) and the oracle (1)."""
+    """Left: every seed's score (dots) and their mean (line) per scenario, one colour per
+    setting, beside random (0) and the oracle (1). Right: minutes of training per run."""
     from matplotlib.figure import Figure
 
     scenarios = list(dict.fromkeys(str(r["scenario"]) for r in rows))
-    fig = Figure(figsize=(1.2 * len(scenarios) + 4, 4.5), dpi=100)
-    ax = fig.add_subplot()
+    fig = Figure(figsize=(1.2 * len(scenarios) + 6, 4.5), dpi=100)
+    ax, clock = fig.subplots(1, 2, gridspec_kw={"width_ratios": [3, 2]})
     for setting in dict.fromkeys(str(r["setting"]) for r in rows):
         mine = [r for r in rows if r["setting"] == setting]
         x = [scenarios.index(str(r["scenario"])) for r in mine]
@@ -156,16 +155,36 @@ def figure(rows: list[dict[str, object]], path: Path) -> None:
         (line,) = ax.plot(x, [np.mean(v) for v in scores], marker="o", label=setting)
         for xi, v in zip(x, scores):
             ax.scatter([xi] * len(v), v, s=12, color=line.get_color(), alpha=0.5)
+        clock.plot(x, [float(r["train_minutes"]) for r in mine], marker="o", color=line.get_color())
     for level, name in ((1.0, "oracle"), (0.0, "random")):
         ax.axhline(level, color="grey", linestyle="--", linewidth=1)
         ax.annotate(name, (len(scenarios) - 0.5, level), fontsize=8, color="grey", va="bottom", ha="right")
-    ax.set_xticks(range(len(scenarios)), scenarios)
-    ax.set_xlim(-0.5, len(scenarios) - 0.5)
+    for axes in (ax, clock):
+        axes.set_xticks(range(len(scenarios)), scenarios, rotation=30 if len(scenarios) > 4 else 0)
+        axes.set_xlim(-0.5, len(scenarios) - 0.5)
     ax.set_ylabel("normalised score (every seed; line: mean)")
-    ax.set_title("deterministic evaluation, 1000 episodes per policy")
+    ax.set_title("deterministic evaluation, 1000 episodes per policy", fontsize=10)
     ax.legend(fontsize=8)
+    clock.set_ylabel("minutes of training per run (all seeds)")
+    clock.set_title("wall time on this machine", fontsize=10)
+    clock.set_ylim(bottom=0)
     fig.tight_layout()
     fig.savefig(path)
+
+
+def read_table(path: Path) -> list[dict[str, object]]:
+    """The rows of a sweep or evaluation table, numbers as numbers (whole ones as ``int``), the rest as text."""
+
+    def value(text: str) -> object:
+        for kind in (int, float):
+            try:
+                return kind(text)
+            except ValueError:
+                pass
+        return text
+
+    with open(path, newline="") as f:
+        return [{k: value(v) for k, v in row.items()} for row in csv.DictReader(f)]
 
 
 def markdown(rows: list[dict[str, object]]) -> str:
@@ -191,7 +210,7 @@ def sweep(config: SweepConfig, live: bool = True) -> Path:
                 run_local([run], summary)
             table.append(table_row(run, evaluation(run, config.eval_episodes)))
             write_csv(config.out / "sweep.csv", table)
-            (config.out / "sweep.md").write_text(markdown(table))
+            atomic_write(config.out / "sweep.md", lambda f: f.write(markdown(table)))
             figure(table, config.out / "sweep.png")
 
     with folder_lock(config.out):  # one writer at a time
