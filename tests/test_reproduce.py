@@ -21,7 +21,7 @@ from roverswarm.experiments.grid import plan
 from roverswarm.cli import main
 from roverswarm.errors import RunStopped, UserError
 from roverswarm.experiments import ReproduceConfig, reproduce
-from roverswarm.experiments.paper import PAPER_TABLE1, paired_change, relative_change
+from roverswarm.experiments.paper import PAPER_TABLE1, paired_change, paired_p, relative_change
 from roverswarm.config import MAPPO, PRESETS, config_from_json, with_options
 
 SCENARIOS = ("paper-2", "paper-3")
@@ -287,6 +287,17 @@ def test_the_paired_change_interval_covers_the_truth_95_percent_of_the_time():
         _, low, high, _ = paired_change(treated, control)
         hits += low <= 10.0 <= high
     assert 0.92 <= hits / trials <= 0.985
+
+
+def test_the_paired_p_value_matches_scipy_and_is_defined_without_spread():
+    from scipy import stats
+
+    differences = np.array([1.0, -0.5, 2.0, 0.3, 1.1])
+    assert paired_p(differences) == pytest.approx(stats.ttest_1samp(differences, 0.0).pvalue)
+    assert paired_p(np.zeros(5)) == 1.0  # identical arms (untrained quick rows): no evidence of a change
+    assert paired_p(np.full(5, 2.0)) == 0.0  # a constant nonzero difference: the t-test's limit
+    assert np.isnan(paired_p(np.array([1.0])))
+    assert paired_change(np.full(3, -10.0), np.full(3, -10.0))[3] == 1.0
 
 
 def test_the_relative_change_interval_covers_the_truth_95_percent_of_the_time():

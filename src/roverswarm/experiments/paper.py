@@ -174,8 +174,8 @@ def relative_change(treated: np.ndarray, control: np.ndarray) -> tuple[float, fl
     if min(len(treated), len(control)) < 2:
         return change, float("nan"), float("nan"), float("nan")
     vt, vc = treated.var(ddof=1) / len(treated), control.var(ddof=1) / len(control)
-    if vt + vc == 0:
-        return change, change, change, float("nan")
+    if vt + vc == 0:  # no spread: as paired_p says
+        return change, change, change, 0.0 if change else 1.0
     df = (vt + vc) ** 2 / (vt**2 / (len(treated) - 1) + vc**2 / (len(control) - 1))
     ratio = treated.mean() / control.mean()
     se = np.sqrt(vt + ratio**2 * vc) / (100.0 * scale)  # delta method for mean_t / mean_c
@@ -195,9 +195,19 @@ def paired_change(treated: np.ndarray, control: np.ndarray) -> tuple[float, floa
     # delta method for mean_t / mean_c with paired samples: the residuals t_s - ratio * c_s
     se = np.std(treated - ratio * control, ddof=1) / np.sqrt(len(treated)) / abs(control.mean())
     half = 100.0 * stats.t.ppf(0.975, len(treated) - 1) * se
-    differences = treated - control
-    p = stats.ttest_1samp(differences, 0.0).pvalue if differences.std() > 0 else float("nan")
-    return change, change - half, change + half, float(p)
+    return change, change - half, change + half, paired_p(treated - control)
+
+
+def paired_p(differences: np.ndarray) -> float:
+    """Two-sided one-sample t-test p-value of ``differences`` against 0. Differences without
+    spread give 1 when all are 0 (the arms agree exactly) and 0 otherwise (the limit of the t-test),
+    rather than the undefined 0/0."""
+    differences = np.asarray(differences, float)
+    if len(differences) < 2:
+        return float("nan")
+    if differences.std() == 0:
+        return 0.0 if differences.any() else 1.0
+    return float(stats.ttest_1samp(differences, 0.0).pvalue)
 
 
 def pooled_change(pairs: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float, float, float, float]:
@@ -205,8 +215,7 @@ def pooled_change(pairs: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float, fl
     ``100 * (treated_s - control_s) / |mean control|`` of every (treated, control) pair, pooled."""
     pooled = np.concatenate([100.0 * (t - c) / abs(np.mean(c)) for t, c in pairs])
     mean, half = mean_interval(pooled)
-    p = stats.ttest_1samp(pooled, 0.0).pvalue if len(pooled) > 1 and pooled.std() > 0 else float("nan")
-    return mean, mean - half, mean + half, float(p)
+    return mean, mean - half, mean + half, paired_p(pooled)
 
 
 TABLE1_COLUMNS = [
