@@ -17,8 +17,24 @@
 # Readings: `paper` (today's, alpha 1, beta 0.1), `sharp` (alpha 3: the largest loss drawn
 # 4x as often as the average), `schaul` (Schaul et al.'s 1/rank, alpha 0.7, importance
 # weights annealed from 0.5); all three re-rank every 25 updates instead of 250.
+#
+# The plain MADDPG arms at K = 1 are the runs of docs/results/swarm/scale.yaml (the same
+# settings, seeds and budget): give that sweep's output folder as the second argument and
+# they are copied instead of trained again (reproduce checks each copy's settings).
 set -euo pipefail
 out=${1:-results/paper-second-pass}
+scale=${2:-}
+if [[ -n "$scale" ]]; then
+  for preset in reference swarm; do
+    for n in 2 3 4 5; do
+      from="$scale/runs/paper-$n/$preset"
+      to="$out/$preset-k1/runs/paper-$n/maddpg"
+      if [[ -d "$from" && ! -e "$to" ]]; then
+        mkdir -p "$(dirname "$to")" && cp -r "$from" "$to" && rm -f "$to/.lock"
+      fi
+    done
+  done
+fi
 variants=(
   paper:refresh_every=25
   sharp:alpha=3,refresh_every=25
