@@ -132,7 +132,7 @@ def _finite(value: float, low: float, what: str, strict: bool = False) -> None:
     require(ok, f"--{what} must be a finite number {'>' if strict else '>='} {low}, got {value}")
 
 
-_PPO_USES = {"algo", "actor_lr", "critic_lr", "gamma", "grad_clip", "hidden"}
+_PPO_USES = {"algo", "actor_lr", "critic_lr", "gamma", "grad_clip", "hidden", "trap_shaping"}
 """The learner options PPO reads; the other ones are MADDPG's."""
 _OFF_POLICY_RUN = ("update_every", "warmup", "noise_std", "noise_final", "noise_decay_episodes")
 """The run options of learning from a replay with exploration noise."""
@@ -249,6 +249,7 @@ def validate(config: TrainConfig) -> EnvParams:
     _finite(learner.target_noise, 0, "target-noise")
     _finite(learner.target_noise_clip, 0, "target-noise-clip")
     _finite(learner.reward_scale, 0, "reward-scale", strict=True)
+    _finite(learner.trap_shaping, 0, "trap-shaping")
     require(
         replay.buffer_size >= steps,
         f"--buffer-size ({replay.buffer_size}) must hold one iteration's transitions (--num-envs x "

@@ -33,7 +33,7 @@ from roverswarm.algos.ppo import (
 )
 from roverswarm.config import TrainConfig
 from roverswarm.env.mars import EnvParams, observation_size, reset, step_env
-from roverswarm.rollout import contact_counts
+from roverswarm.rollout import contact_counts, shaped_rewards
 from roverswarm.runs import Runner, start_runner
 
 
@@ -86,13 +86,14 @@ def collect(config: TrainConfig, params: EnvParams, actor, key: jax.Array) -> tu
             obs=obs,
             actions=actions,
             log_probs=gaussian_log_prob(actions, mean, log_std),
-            rewards=rewards * live[:, None],
+            rewards=shaped_rewards(rewards, info, config.learner.trap_shaping) * live[:, None],
             next_obs=next_obs,
             terminated=terminated & live,
             truncated=truncated & live,
             mask=live.astype(jnp.float32),
         )
         stats = {k: v * live for k, v in contact_counts(info).items()}
+        stats["rewards"] = rewards * live[:, None]
         stats["coverage_distance"] = info["coverage_distance"]
         carry = (_where_env(done, obs, next_obs), _where_env(done, env_state, next_state), done | terminated)
         return carry, (step, stats)
@@ -100,8 +101,8 @@ def collect(config: TrainConfig, params: EnvParams, actor, key: jax.Array) -> tu
     done = jnp.zeros((config.num_envs,), bool)
     _, (traj, stats) = jax.lax.scan(body, (obs, env_state, done), jax.random.split(k_steps, params.max_steps))
     episode = {
-        "episode_reward": traj.rewards.sum(axis=(0, 2)),
-        "agent_rewards": traj.rewards.sum(axis=0),
+        "episode_reward": stats["rewards"].sum(axis=(0, 2)),
+        "agent_rewards": stats["rewards"].sum(axis=0),
         "collisions": stats["collisions"].sum(axis=0),
         "trap_contacts": stats["trap_contacts"].sum(axis=0),
         "coverage_distance": stats["coverage_distance"][-1],

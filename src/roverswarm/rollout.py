@@ -32,6 +32,13 @@ def contact_counts(info: dict[str, jax.Array]) -> dict[str, jax.Array]:
     return {"collisions": jnp.sum(info["collisions"], -1) / 2, "trap_contacts": jnp.sum(info["trap_contacts"], -1)}
 
 
+def shaped_rewards(rewards: jax.Array, info: dict[str, jax.Array], trap_shaping: float) -> jax.Array:
+    """The rewards a learner trains on: the environment's ``rewards`` [..., N] less
+    ``trap_shaping`` more per trap each rover touches (``--trap-shaping``). Episode rewards,
+    metrics and evaluations stay the environment's."""
+    return rewards - trap_shaping * info["trap_contacts"]
+
+
 @dataclass(frozen=True)
 class EpisodeStats:
     """Per-episode metrics, each an array with leading axis E."""

@@ -43,7 +43,7 @@ from roverswarm.buffers.base import Buffer, BufferState, Draw, importance_weight
 from roverswarm.config import TrainConfig, config_from_json, config_to_json, fields_by_name, validate, with_mission_text
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, reset, step_env
 from roverswarm.errors import RunStopped, require
-from roverswarm.rollout import contact_counts
+from roverswarm.rollout import contact_counts, shaped_rewards
 from roverswarm.runs import (
     CHECKPOINT,
     CONFIG,
@@ -121,16 +121,14 @@ def collect(config: TrainConfig, params: EnvParams, learner: LearnerState, key: 
             state, actions, params
         )
         counts = contact_counts(info)
-        stats = (counts["collisions"], counts["trap_contacts"], info["coverage_distance"])
-        steps = (compact.rovers_of(state), actions, rewards, terminated)
-        return (next_obs, next_state), (steps, obs, stats)
+        stats = (rewards, counts["collisions"], counts["trap_contacts"], info["coverage_distance"])
+        learned = shaped_rewards(rewards, info, config.learner.trap_shaping)
+        return (next_obs, next_state), ((compact.rovers_of(state), actions, learned, terminated), obs, stats)
 
-    (_, last), ((rovers, actions, rewards, terminated), observations, (collisions, traps, coverage)) = jax.lax.scan(
+    (_, last), (steps, observations, (rewards, collisions, traps, coverage)) = jax.lax.scan(
         body, (obs, state), jax.random.split(k_steps, params.max_steps)
     )
-    collected = compact.Collected(
-        rovers, actions, rewards, terminated, compact.layout_of(state), compact.rovers_of(last), policy
-    )
+    collected = compact.Collected(*steps, compact.layout_of(state), compact.rovers_of(last), policy)
     episode = {
         "episode_reward": rewards.sum(axis=(0, 2)),
         "agent_rewards": rewards.sum(axis=0),

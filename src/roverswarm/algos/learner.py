@@ -81,6 +81,10 @@ class AlgoConfig:
     """Standardise observations by a running mean and variance (kept in checkpoints)."""
     reward_scale: float = 1.0
     """Rewards are multiplied by this before the critic's targets."""
+    trap_shaping: float = 0.0
+    """Reward shaping: the learner trains on the environment's reward less this much more per
+    trap a rover touches per step (the environment charges 1); what it reports, and every
+    evaluation, stays the environment's reward. MADDPG, DDPG, MAPPO and IPPO."""
 
 
 @struct.dataclass
