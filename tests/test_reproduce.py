@@ -6,6 +6,7 @@ import csv
 import os
 import shutil
 import signal
+import socket
 import multiprocessing
 import threading
 import time
@@ -390,6 +391,21 @@ def test_jobs_train_runs_side_by_side_to_the_numbers_of_one_process(base, finish
         assert f"--jobs must be in [1, {len(grid_module.usable_cpus())}]" in capsys.readouterr().err
     assert main(["reproduce", "--out", str(tmp_path), "--jobs", "1", "--backend", "ray"]) == 2
     assert "--jobs is for --backend local" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(len(grid_module.usable_cpus()) < 2, reason="needs 2 CPUs")
+def test_a_failed_job_is_reported_with_its_own_error(base, tmp_path):
+    """Both jobs fail at once (each folder held by a live writer): the error reported is the
+    failed run's own, not whichever job's error reached the queue first."""
+    runs = plan(tiny_grid(tmp_path, scenarios=("paper-2",), algorithms=("ddpg", "maddpg"), jobs=2), base)
+    for run in runs:
+        run.folder.mkdir(parents=True)
+        (run.folder / ".lock").write_text(f"{os.getpid()} {socket.gethostname()}")  # this test: alive
+    with pytest.raises(RunStopped) as stopped:
+        grid_module.run_jobs(runs, grid_module.Summary(runs, set()), jobs=2)
+    name = str(stopped.value).split("'")[1]
+    folder = next(run.folder for run in runs if run.name == name)
+    assert f"'{folder}' is being written by process {os.getpid()}" in str(stopped.value)
 
 
 def test_default_jobs_follow_run_length_cpus_and_memory(base, tmp_path, monkeypatch):

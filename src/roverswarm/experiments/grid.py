@@ -384,7 +384,7 @@ def run_jobs(runs: list[GridRun], summary: Summary, jobs: int) -> None:
     free = cpu_shares(jobs)
     context = multiprocessing.get_context("spawn")  # a fresh JAX per process (fork would copy threads)
     failures = context.Queue()
-    queue, running = list(runs), {}
+    queue, running, reported = list(runs), {}, {}
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM as Ctrl-C
     try:
         while queue or running:
@@ -399,7 +399,10 @@ def run_jobs(runs: list[GridRun], summary: Summary, jobs: int) -> None:
                 run, share = running.pop(process)
                 free.append(share)
                 if process.exitcode != 0:
-                    message = failures.get() if not failures.empty() else f"exit code {process.exitcode}"
+                    while not failures.empty():  # every job's error so far, by its folder
+                        folder, text = failures.get()
+                        reported[folder] = text
+                    message = reported.get(str(run.folder), f"exit code {process.exitcode}")
                     raise RunStopped(f"run '{run.name}' stopped: {message}")
                 summary.finish(run)
             for run, _ in running.values():
@@ -418,7 +421,8 @@ def run_jobs(runs: list[GridRun], summary: Summary, jobs: int) -> None:
 
 
 def _train_job(config_json: str, folder: str, resume: bool, cpus: list[int], failures) -> None:
-    """A job of :func:`run_jobs`: one run on ``cpus``; its error (one line) goes to ``failures``."""
+    """A job of :func:`run_jobs`: one run on ``cpus``; its error (one line) goes to ``failures``
+    beside its folder, so the error reported is the failed run's own."""
     if hasattr(os, "sched_setaffinity"):  # Linux; elsewhere the jobs share every CPU
         os.sched_setaffinity(0, cpus)  # before JAX starts its threads, which it sizes by the CPUs it may use
     from roverswarm.jaxcache import enable_compilation_cache
@@ -427,7 +431,7 @@ def _train_job(config_json: str, folder: str, resume: bool, cpus: list[int], fai
     try:
         train(config_from_json(config_json), out=Path(folder), resume=resume, progress=False)
     except (UserError, RunStopped, OSError) as error:
-        failures.put(str(error))
+        failures.put((folder, str(error)))
         sys.exit(1)
 
 
