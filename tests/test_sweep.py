@@ -16,7 +16,7 @@ from roverswarm.cli import main
 from roverswarm.config import with_options
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
-from roverswarm.experiments.sweep import SweepConfig, load_sweep, read_table, sweep
+from roverswarm.experiments.sweep import SweepConfig, gapped, load_sweep, read_table, sweep
 from roverswarm.rollout import rollout
 from roverswarm.runs import Run, write_csv
 
@@ -142,3 +142,12 @@ def test_the_score_against_n_script_joins_tables_by_rover_count(finished, tmp_pa
     assert "| paper-1 | plain (0.4k) | 2 |" in out.with_suffix(".md").read_text()
     assert out.with_suffix(".png").stat().st_size > 10_000
     assert "4 rows" in capsys.readouterr().out
+
+
+def test_a_line_through_a_settings_scores_stops_at_a_scenario_it_did_not_run():
+    """Scenarios 0, 1, 3 and 5 of the figure run, 2 and 4 not: three pieces of line, in order."""
+    xs, ys = gapped([3, 0, 1, 5], [30.0, 0.0, 10.0, 50.0])
+    assert xs[:2] == [0, 1] and ys[:2] == [0.0, 10.0]
+    assert np.isnan(xs[2]) and np.isnan(ys[2]) and (xs[3], ys[3]) == (3, 30.0)
+    assert np.isnan(xs[4]) and (xs[5], ys[5]) == (5, 50.0) and len(xs) == 6
+    assert gapped([0, 1, 2], [1.0, 2.0, 3.0]) == ([0, 1, 2], [1.0, 2.0, 3.0])

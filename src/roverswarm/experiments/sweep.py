@@ -140,6 +140,21 @@ def table_row(run: GridRun, rows: list[dict[str, object]]) -> dict[str, object]:
     }
 
 
+def gapped(x: list[int], y: list[float]) -> tuple[list[float], list[float]]:
+    """Points ``(x, y)`` in order of ``x`` with a NaN between two that are not neighbours
+    (``x`` differs by more than 1), so a line drawn through them stops at a scenario the
+    setting did not run instead of bridging it."""
+    xs: list[float] = []
+    ys: list[float] = []
+    for a, b in sorted(zip(x, y)):
+        if xs and a > xs[-1] + 1:
+            xs.append(np.nan)
+            ys.append(np.nan)
+        xs.append(a)
+        ys.append(b)
+    return xs, ys
+
+
 def figure(rows: list[dict[str, object]], path: Path) -> None:
     """Left: every seed's score (dots) and their mean (line) per scenario, one colour per
     setting, beside random (0) and the oracle (1). Right: minutes of training per run."""
@@ -152,10 +167,10 @@ def figure(rows: list[dict[str, object]], path: Path) -> None:
         mine = [r for r in rows if r["setting"] == setting]
         x = [scenarios.index(str(r["scenario"])) for r in mine]
         scores = [[float(v) for v in str(r["scores"]).split(" / ")] for r in mine]
-        (line,) = ax.plot(x, [np.mean(v) for v in scores], marker="o", label=setting)
+        (line,) = ax.plot(*gapped(x, [np.mean(v) for v in scores]), marker="o", label=setting)
         for xi, v in zip(x, scores):
             ax.scatter([xi] * len(v), v, s=12, color=line.get_color(), alpha=0.5)
-        clock.plot(x, [float(r["train_minutes"]) for r in mine], marker="o", color=line.get_color())
+        clock.plot(*gapped(x, [float(r["train_minutes"]) for r in mine]), marker="o", color=line.get_color())
     for level, name in ((1.0, "oracle"), (0.0, "random")):
         ax.axhline(level, color="grey", linestyle="--", linewidth=1)
         ax.annotate(name, (len(scenarios) - 0.5, level), fontsize=8, color="grey", va="bottom", ha="right")
