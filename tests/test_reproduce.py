@@ -338,8 +338,8 @@ def _reproduce_on_ray(config, base) -> list[int]:
     the killed worker's pid. Runs in its own process (see below)."""
     import ray
 
-    # Ray starts its workers at nice 15: beside the other test process (nice 0) they starved,
-    # and the run took 58 s where it takes 9 s at the same priority
+    # Ray starts its workers at nice 15: beside other busy processes (the other test worker
+    # runs at nice 0) they starve; the run took 58 s at nice 15 and 9 s at nice 0
     os.environ["RAY_worker_niceness"] = "0"
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     killed: list[int] = []
