@@ -25,7 +25,7 @@ from roverswarm.config import REFERENCE, SWARM, TrainConfig, config_from_json, v
 from roverswarm.runs import CHECKPOINT, LOCK, METRICS, Run, atomic_write, read_metrics
 import roverswarm.trainer as trainer_module
 from roverswarm.buffers import make_buffer
-from roverswarm.trainer import run_buffer, train
+from roverswarm.trainer import checkpoint_due, run_buffer, train
 
 TIMELESS = lambda rows: [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rows]  # noqa: E731
 
@@ -164,6 +164,33 @@ def test_ctrl_c_or_sigterm_saves_a_checkpoint_and_resume_finishes(tiny_config, t
     assert read_metrics(out / "metrics.csv")[-1]["episodes"] == config.episodes
 
 
+def test_a_checkpoint_is_due_by_chunks_or_once_the_minutes_have_passed(tiny_config):
+    config = dataclasses.replace(tiny_config, checkpoint_every=3, checkpoint_minutes=10.0)
+    now = time.monotonic()
+    assert [checkpoint_due(config, n, now) for n in (1, 2, 3, 6)] == [False, False, True, True]
+    assert not checkpoint_due(config, 1, now - 599) and checkpoint_due(config, 1, now - 601)
+    assert not checkpoint_due(dataclasses.replace(config, checkpoint_minutes=0.0), 1, now - 10**6)
+
+
+def test_checkpoint_minutes_save_mid_run_without_changing_the_numbers(unbroken, tiny_config, tmp_path, monkeypatch):
+    """With --checkpoint-every beyond the run's end, a tiny --checkpoint-minutes writes a
+    checkpoint (with the replay) after every chunk, and 0 only the final one (without it)."""
+    original, saves = trainer_module.save_checkpoint, []
+
+    def recorded(path, runner, replay):
+        saves.append(replay)
+        original(path, runner, replay=replay)
+
+    monkeypatch.setattr(trainer_module, "save_checkpoint", recorded)
+    chunks = tiny_config.episodes // tiny_config.log_every
+    for minutes, expected in ((1e-9, [True] * (chunks - 1) + [False]), (0.0, [False])):
+        saves.clear()
+        config = dataclasses.replace(tiny_config, checkpoint_every=1000, checkpoint_minutes=minutes)
+        result = train(config, out=tmp_path / str(minutes), progress=False)
+        assert saves == expected
+        assert TIMELESS(result.metrics) == TIMELESS(unbroken.metrics)
+
+
 def test_non_finite_losses_stop_the_run_and_keep_the_last_good_checkpoint(tiny_config, tmp_path, monkeypatch):
     import roverswarm.trainer as train_module
 
@@ -215,6 +242,7 @@ def test_ranked_replay_is_deterministic_and_resumes_exactly(tiny_config, tmp_pat
         (["--replay", "ranked", "--refresh-every", "0"], "--refresh-every must be >= 1, got 0"),
         (["--importance-exponent", "1.5"], "--importance-exponent must be in [0, 1], got 1.5"),
         (["--noise-decay-episodes", "-5"], "--noise-decay-episodes must be >= 0, got -5"),
+        (["--checkpoint-minutes", "-1"], "--checkpoint-minutes must be a finite number >= 0, got -1.0"),
     ],
 )
 def test_bad_training_input_is_one_line_and_exit_2(argv, message, capsys, tmp_path):

@@ -69,6 +69,10 @@ class TrainConfig:
     """Episodes per metrics row (and per jitted chunk)."""
     checkpoint_every: int = 10
     """Chunks (of --log-every episodes) between checkpoints; one is always written at the end."""
+    checkpoint_minutes: float = 10.0
+    """A checkpoint is also written at the end of the first chunk that finishes this many
+    minutes after the last one, so a killed long run loses at most about that much training;
+    0 leaves checkpoints to --checkpoint-every alone. Never changes the run's numbers."""
 
     def env_name(self) -> str:
         """What the run trains on: the scenario, or the mission file's name."""
@@ -209,6 +213,7 @@ def validate(config: TrainConfig) -> EnvParams:
     _positive(config, ("episodes", "seeds", "num_envs", "update_every", "log_every", "checkpoint_every"))
     _positive(replay, ("batch_size", "buffer_size", "refresh_every"))
     require(config.warmup >= 0, f"--warmup must be >= 0, got {config.warmup}")
+    _finite(config.checkpoint_minutes, 0, "checkpoint-minutes")
     require(
         replay.batch_size <= replay.buffer_size,
         f"--batch-size ({replay.batch_size}) must not exceed --buffer-size ({replay.buffer_size})",

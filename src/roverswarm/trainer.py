@@ -312,6 +312,14 @@ def train(
         return _train(config, params, Path(out), resume, progress, on_chunk)
 
 
+def checkpoint_due(config: TrainConfig, chunks_done: int, saved_at: float) -> bool:
+    """A checkpoint is due after every ``--checkpoint-every`` chunks of this session
+    (``chunks_done``) and once ``--checkpoint-minutes`` have passed since the last one was
+    written (``saved_at``, on ``time.monotonic``)."""
+    by_time = config.checkpoint_minutes > 0 and time.monotonic() - saved_at >= 60 * config.checkpoint_minutes
+    return chunks_done % config.checkpoint_every == 0 or by_time
+
+
 def physical_memory() -> int:
     """Bytes of physical memory of this machine."""
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
@@ -418,6 +426,7 @@ def _train(
                 reward="-",
                 rate="-",
             )
+            saved_at = time.monotonic()
             for chunk in range(first, chunks):
                 start = time.perf_counter()
                 runner, metrics = chunk_fn(runner)
@@ -452,8 +461,9 @@ def _train(
                 last = chunk + 1 == chunks
                 if out is not None:  # every chunk's rows at once; rows past the checkpoint are trimmed on resume
                     write_csv(out / METRICS, rows)
-                if out is not None and (last or stop.raised or (chunk + 1 - first) % config.checkpoint_every == 0):
+                if out is not None and (last or stop.raised or checkpoint_due(config, chunk + 1 - first, saved_at)):
                     save_checkpoint(out / CHECKPOINT, runner, replay=not last)
+                    saved_at = time.monotonic()
                 if stop.raised and not last:
                     if out is not None:
                         plot_learning_curve(
