@@ -181,7 +181,7 @@ def figure(rows: list[dict[str, object]], path: Path) -> None:
     ax.set_title("deterministic evaluation, 1000 episodes per policy", fontsize=10)
     ax.legend(fontsize=8)
     clock.set_ylabel("minutes of training per run (all seeds)")
-    clock.set_title("wall time on this machine", fontsize=10)
+    clock.set_title("wall time of each run, where it was trained", fontsize=10)
     clock.set_ylim(bottom=0)
     fig.tight_layout()
     fig.savefig(path)
