@@ -21,6 +21,8 @@
 # The plain MADDPG arms at K = 1 are the runs of docs/results/swarm/scale.yaml (the same
 # settings, seeds and budget): give that sweep's output folder as the second argument and
 # they are copied instead of trained again (reproduce checks each copy's settings).
+# Each finished part's report.md, table1.*, fig8/9.png, final_policies.csv and timing.csv are
+# committed in docs/results/paper/second-pass/<part>/ (docs/reproduce.md#the-second-pass).
 set -euo pipefail
 out=${1:-results/paper-second-pass}
 scale=${2:-}
