@@ -57,6 +57,11 @@ def test_render_writes_an_animation_and_its_last_frame(tmp_path):
         (["train", "--hidden", "0", "64"], "--hidden needs 1 or more widths in [1, 65536]"),
         (["train", "--preset", "mappo", "--twin-critics"], "--twin-critics True does not apply: --algo mappo"),
         (["train", "--epochs", "3"], "--epochs 3 does not apply: it is a PPO option"),
+        (
+            ["train", "--scenario", "paper-3", "--critic-neighbors", "3"],
+            "--critic-neighbors must be in [0, 2] (other rovers of 3; 0 = all), got 3",
+        ),
+        (["train", "--algo", "ddpg", "--critic-neighbors", "1"], "--critic-neighbors needs --algo maddpg"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_code_2(argv, message, capsys, tmp_path, monkeypatch):

@@ -119,10 +119,27 @@ def actor(params, obs, cfg=None, i=None):
     return jnp.tanh(pre), pre
 
 
+def nearest_rows(cfg, obs, actions, i, by_index=False):
+    """Critic inputs [B, (1 + K) * (O + A)] of --critic-neighbors K, one transition at a time:
+    agent i, then the K other rovers nearest to it (positions at entries 2-3 of each rover's
+    observation; ties to the lower index), or with ``by_index`` the first K others by index."""
+    rows = []
+    for b, o in enumerate(np.asarray(obs)):  # the order from the positions; actions may be traced (actor loss)
+        others = [j for j in range(N) if j != i]
+        if not by_index:
+            others.sort(key=lambda j: (float(np.sum((o[j, 2:4] - o[i, 2:4]) ** 2)), j))
+        order = [i] + others[: cfg.critic_neighbors]
+        rows.append(jnp.concatenate([obs[b, jnp.array(order)].ravel(), actions[b, jnp.array(order)].ravel()]))
+    return jnp.stack(rows)
+
+
 def q_values(cfg, params, obs, actions, i, global_order=False):
-    """Agent i's Q [B] of observations [B, N, O] and actions [B, N, A], one per critic (two if twin)."""
+    """Agent i's Q [B] of observations [B, N, O] and actions [B, N, A], one per critic (two if twin).
+    ``global_order``: the wrong views the tests must catch (others in index order)."""
     rows = len(obs)
-    if cfg.algo == "maddpg":
+    if cfg.algo == "maddpg" and cfg.critic_neighbors:
+        inputs = nearest_rows(cfg, obs, actions, i, by_index=global_order)
+    elif cfg.algo == "maddpg":
         order = [i] + [j for j in range(N) if j != i] if cfg.share_parameters and not global_order else list(range(N))
         inputs = jnp.concatenate([obs[:, order].reshape(rows, N * O), actions[:, order].reshape(rows, N * A)], axis=1)
     else:
@@ -254,7 +271,7 @@ def reference_update(
         y = td_target(cfg, pick(state.target_critic, i), next_obs, next_actions, rewards, not_done, i, twin_max)
 
         def td_losses(critic_params):
-            return [(q - y) ** 2 for q in q_values(cfg, critic_params, obs, actions, i)]
+            return [(q - y) ** 2 for q in q_values(cfg, critic_params, obs, actions, i, global_order)]
 
         def critic_loss(critic_params):
             return sum(jnp.mean(w * td) for td in td_losses(critic_params))
@@ -269,9 +286,9 @@ def reference_update(
             def actor_loss(actor_params, row=row):
                 own, pre = actor(actor_params, batch.obs[row][:, i], cfg)
                 joint = batch.actions[row].at[:, i].set(own)
-                return -jnp.mean(q_values(cfg, judge, batch.obs[row], joint, i)[0]) + cfg.action_penalty * jnp.mean(
-                    pre**2
-                )
+                return -jnp.mean(
+                    q_values(cfg, judge, batch.obs[row], joint, i, global_order)[0]
+                ) + cfg.action_penalty * jnp.mean(pre**2)
 
             old_actor = pick(state.actor, i * K + k)
             actors.append(clip_and_adam(old_actor, jax.grad(actor_loss)(old_actor), cfg.grad_clip, cfg.actor_lr))
@@ -380,6 +397,8 @@ CASES = {
         algo="maddpg", ensemble=2, twin_critics=True, target_noise=0.3, infer_policies=True
     ),
     "ddpg-shared-layernorm": dict(algo="ddpg", share_parameters=True, layer_norm=True),
+    "maddpg-neighbors1-twin": dict(algo="maddpg", critic_neighbors=1, twin_critics=True, target_noise=0.3),
+    "maddpg-neighbors1-ensemble2-infer": dict(algo="maddpg", critic_neighbors=1, ensemble=2, infer_policies=True),
     "maddpg-swarm-weighted": dict(
         algo="maddpg",
         share_parameters=True,
@@ -389,6 +408,9 @@ CASES = {
         normalize_obs=True,
         reward_scale=0.1,
         weighted=True,
+    ),
+    "maddpg-swarm-neighbors1-weighted": dict(
+        algo="maddpg", share_parameters=True, twin_critics=True, critic_neighbors=1, normalize_obs=True, weighted=True
     ),
 }
 
@@ -537,13 +559,14 @@ def test_an_empty_partition_leaves_its_sub_policy_alone(case):
     ids=["no_smoothing", "larger_twin", "global_order"],
 )
 def test_the_swarm_options_are_caught(case, variant):
-    """The reference without target smoothing, with the larger of the twin estimates, or with
-    the shared MADDPG critic's view in global order (not own-first) disagrees with the code."""
+    """The reference without target smoothing, with the larger of the twin estimates, with the
+    shared MADDPG critic's view in global order (not own-first), or with --critic-neighbors'
+    others taken by index (not nearest first) disagrees with the code."""
     cfg, state, batch, weights, new_state, info, _ = case
     if (
         ("smooth" in variant and cfg.target_noise == 0)
         or ("twin_max" in variant and not cfg.twin_critics)
-        or ("global_order" in variant and not (cfg.share_parameters and cfg.algo == "maddpg"))
+        or ("global_order" in variant and not ((cfg.share_parameters or cfg.critic_neighbors) and cfg.algo == "maddpg"))
     ):
         pytest.skip("the variant changes nothing for this case")
     wrong = reference_update(cfg, state, batch, weights, **variant)

@@ -252,6 +252,15 @@ def validate(config: TrainConfig) -> EnvParams:
         not learner.share_parameters or (learner.ensemble == 1 and not learner.infer_policies),
         "--share-parameters does not compose with --ensemble > 1 or --infer-policies (they need one network per agent)",
     )
+    require(
+        0 <= learner.critic_neighbors < params.num_rovers,
+        f"--critic-neighbors must be in [0, {params.num_rovers - 1}] (other rovers of {params.num_rovers}; 0 = all), "
+        f"got {learner.critic_neighbors}",
+    )
+    require(
+        not learner.critic_neighbors or learner.algo == "maddpg",
+        "--critic-neighbors needs --algo maddpg: a DDPG critic sees no other rover",
+    )
     require(learner.actor_delay >= 1, f"--actor-delay must be >= 1, got {learner.actor_delay}")
     _finite(learner.target_noise, 0, "target-noise")
     _finite(learner.target_noise_clip, 0, "target-noise-clip")

@@ -20,7 +20,7 @@ from roverswarm.algos.inference import gaussian_policies
 from roverswarm.algos.networks import MLP, actor_forward, critic_forward
 from roverswarm.algos.normalize import ObsNorm, init_obs_norm, normalize, update_obs_norm
 from roverswarm.buffers.base import Transition
-from roverswarm.env.mars import ACTION_SIZE, other_rovers
+from roverswarm.env.mars import ACTION_SIZE, OWN_POSITION, other_rovers
 
 Algo = Literal["maddpg", "ddpg", "mappo", "ippo"]
 ALGOS: tuple[str, ...] = ("maddpg", "ddpg", "mappo", "ippo")
@@ -67,6 +67,10 @@ class AlgoConfig:
     """One actor and one critic for all rovers, with the rover's one-hot index as an input and
     the critic's view ordered own-first; every update learns from all rovers' batches.
     Not with --ensemble > 1 or --infer-policies."""
+    critic_neighbors: int = 0
+    """MADDPG: each critic sees its own rover and only the nearest this many other rovers
+    (their observations and actions, nearest first by the positions in the observations it is
+    given, per transition) instead of every rover; 0 = every rover (the paper's centralised critic)."""
     twin_critics: bool = False
     """Two critics per agent; the target takes the smaller of their estimates (TD3/MATD3)."""
     target_noise: float = 0.0
@@ -132,10 +136,19 @@ def actor_inputs(config: AlgoConfig, obs: jax.Array) -> jax.Array:
 
 def critic_inputs(config: AlgoConfig, obs: jax.Array, actions: jax.Array, agent: jax.Array) -> jax.Array:
     """What agent ``agent``'s critic sees: [B, N, O] observations and [B, N, A] actions -> [B, D].
-    Shared parameters: own-first order and the one-hot index appended."""
+    Shared parameters: own-first order and the one-hot index appended. ``critic_neighbors``
+    K > 0: the agent and its K nearest other rovers, nearest first, in each transition."""
     batch, n = obs.shape[:2]
     if config.algo == "ddpg":
         inputs = [obs[:, agent], actions[:, agent]]
+    elif config.critic_neighbors:
+        pos = obs[..., OWN_POSITION]  # [B, N, 2]
+        dist = jnp.sum(jnp.square(pos - pos[:, agent, None]), axis=-1).at[:, agent].set(-1.0)  # own first
+        order = jnp.argsort(dist, axis=1)[:, : 1 + config.critic_neighbors, None]  # [B, 1 + K, 1]
+        inputs = [
+            jnp.take_along_axis(obs, order, axis=1).reshape(batch, -1),
+            jnp.take_along_axis(actions, order, axis=1).reshape(batch, -1),
+        ]
     elif config.share_parameters:
         order = jnp.concatenate([agent[None], jnp.asarray(other_rovers(n))[agent]])
         inputs = [obs[:, order].reshape(batch, -1), actions[:, order].reshape(batch, -1)]

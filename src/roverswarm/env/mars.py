@@ -96,6 +96,10 @@ def count_text(params: EnvParams) -> str:
     return f"{params.num_rovers} rovers, {params.num_pois} POIs, {params.num_traps} traps"
 
 
+OWN_POSITION = slice(2, 4)
+"""Where a rover's own position sits in its observation (after its velocity)."""
+
+
 def observation_size(params: EnvParams) -> int:
     """Length O of one rover's observation vector."""
     return 4 + 2 * params.num_pois + 2 * params.num_traps + 2 * (params.num_rovers - 1)
