@@ -59,7 +59,8 @@ def test_render_writes_an_animation_and_its_last_frame(tmp_path):
         (["train", "--epochs", "3"], "--epochs 3 does not apply: it is a PPO option"),
         (
             ["train", "--scenario", "paper-3", "--critic-neighbors", "3"],
-            "--critic-neighbors must be in [0, 2] (other rovers of 3; 0 = all), got 3",
+            "--critic-neighbors must be in [0, 2]: the other rovers each critic sees besides its own, of 3 "
+            "(0 = all), got 3",
         ),
         (["train", "--algo", "ddpg", "--critic-neighbors", "1"], "--critic-neighbors needs --algo maddpg"),
     ],

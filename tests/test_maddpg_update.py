@@ -26,10 +26,13 @@ noise on every target action, drawn from the update's key as the code splits it:
 agent), layer norm (written out here from the LayerNorm parameters), observation
 standardisation by a given running mean and variance and reward scaling (applied to the
 batch first), and shared parameters (one actor and critic with the agent's one-hot index,
-the critic's view ordered own-first, every agent's losses averaged into one Adam step).
-Variants without the smoothing, with the larger twin estimate, or with the shared critic's
-view in global order disagree with the code; a delayed actor update leaves the actor and the
-targets alone on the off steps.
+the critic's view ordered own-first, every agent's losses averaged into one Adam step), and
+the critic over the nearest C other rovers (``critic_neighbors``: the order computed one
+transition at a time, C = 1 and C = 2, so both the choice and the order of the neighbours
+count).
+Variants without the smoothing, with the larger twin estimate, with the shared critic's
+view in global order or with the neighbours taken by index disagree with the code; a delayed
+actor update leaves the actor and the targets alone on the off steps.
 The last tests check that the comparison discriminates: the reference with the actor step
 on the old critic, without cutting the bootstrap at termination, with the true target
 policies in place of the approximations, with the approximations fitted on the agent's own
@@ -399,6 +402,7 @@ CASES = {
     "ddpg-shared-layernorm": dict(algo="ddpg", share_parameters=True, layer_norm=True),
     "maddpg-neighbors1-twin": dict(algo="maddpg", critic_neighbors=1, twin_critics=True, target_noise=0.3),
     "maddpg-neighbors1-ensemble2-infer": dict(algo="maddpg", critic_neighbors=1, ensemble=2, infer_policies=True),
+    "maddpg-neighbors2-weighted": dict(algo="maddpg", critic_neighbors=2, weighted=True),
     "maddpg-swarm-weighted": dict(
         algo="maddpg",
         share_parameters=True,

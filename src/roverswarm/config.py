@@ -254,8 +254,8 @@ def validate(config: TrainConfig) -> EnvParams:
     )
     require(
         0 <= learner.critic_neighbors < params.num_rovers,
-        f"--critic-neighbors must be in [0, {params.num_rovers - 1}] (other rovers of {params.num_rovers}; 0 = all), "
-        f"got {learner.critic_neighbors}",
+        f"--critic-neighbors must be in [0, {params.num_rovers - 1}]: the other rovers each critic sees besides its "
+        f"own, of {params.num_rovers} (0 = all), got {learner.critic_neighbors}",
     )
     require(
         not learner.critic_neighbors or learner.algo == "maddpg",

@@ -144,7 +144,7 @@ def critic_inputs(config: AlgoConfig, obs: jax.Array, actions: jax.Array, agent:
     elif config.critic_neighbors:
         pos = obs[..., OWN_POSITION]  # [B, N, 2]
         dist = jnp.sum(jnp.square(pos - pos[:, agent, None]), axis=-1).at[:, agent].set(-1.0)  # own first
-        order = jnp.argsort(dist, axis=1)[:, : 1 + config.critic_neighbors, None]  # [B, 1 + K, 1]
+        order = jnp.argsort(dist, axis=1, stable=True)[:, : 1 + config.critic_neighbors, None]  # ties: lower index
         inputs = [
             jnp.take_along_axis(obs, order, axis=1).reshape(batch, -1),
             jnp.take_along_axis(actions, order, axis=1).reshape(batch, -1),

@@ -4,7 +4,8 @@ Shape legend
     N  agents (rovers), K  sub-policies per agent (1 without ensembles), B  batch size,
     O  observation size, A  action size (2),
     D  critic input size: N * (O + A) for MADDPG (all observations and actions),
-       O + A for DDPG (the agent's own).
+       (1 + C) * (O + A) with ``critic_neighbors`` C, O + A for DDPG (the agent's own);
+       + N with shared parameters (the one-hot index).
 
 Every agent i has an actor mu_i(o_i) and a critic Q_i. One update of agent i, on a batch
 drawn for it (``batch`` carries a leading agent axis: agent i's own sample):
@@ -51,10 +52,14 @@ Options for swarms (homogeneous rovers), each off by default and composable:
 * ``share_parameters``: one actor mu(o_i, e_i) and one critic Q(x_i, a_i, e_i) for every
   rover, e_i the rover's one-hot index. The critic's view is ordered own-first: rover i's
   observation and action, then the others' in index order (x_i = o_i, o_{-i}; for DDPG its
-  own only), so the same weights mean the same thing for every rover. Each update takes
+  own only; with ``critic_neighbors``, nearest first), so the same weights mean the same
+  thing for every rover. Each update takes
   every rover's batch: the losses below are averaged over rovers, one gradient step per
   network, so the shared networks learn from N times the data. Parameters keep a leading
   group axis of size 1.
+* ``critic_neighbors`` C > 0 (MADDPG): the critic of rover i sees o_i, a_i and the
+  observations and actions of the C other rovers nearest to it in that transition, nearest
+  first, in place of all N: between the centralised critic and DDPG's local one.
 * ``twin_critics`` (TD3/MATD3): two critics per group; the target takes the smaller,
   ``y = r_i + gamma * (1 - terminated) * min_c Q'_{i,c}(x', a')``; both fit y (losses summed);
   the actor follows the first; the TD loss handed to the replay is the first critic's.
