@@ -17,7 +17,7 @@ from roverswarm.experiments.sweep import figure, markdown, read_table
 from roverswarm.runs import atomic_write, write_csv
 
 HERE = Path(__file__).resolve().parent
-TABLES = [HERE / "scale.csv", HERE / "targets.csv", HERE.parent / "ppo" / "ppo-scale.csv"]
+TABLES = [HERE / "scale.csv", HERE / "targets.csv", HERE / "targets-ddpg.csv", HERE.parent / "ppo" / "ppo-scale.csv"]
 COLUMNS = [
     "scenario", "setting", "seeds", "scores", "min_score", "mean_score", "pois_observed",
     "collisions", "trap_contacts", "oracle_trap_contacts", "random_reward", "oracle_reward", "train_minutes",
