@@ -53,10 +53,9 @@ Options for swarms (homogeneous rovers), each off by default and composable:
   rover, e_i the rover's one-hot index. The critic's view is ordered own-first: rover i's
   observation and action, then the others' in index order (x_i = o_i, o_{-i}; for DDPG its
   own only; with ``critic_neighbors``, nearest first), so the same weights mean the same
-  thing for every rover. Each update takes
-  every rover's batch: the losses below are averaged over rovers, one gradient step per
-  network, so the shared networks learn from N times the data. Parameters keep a leading
-  group axis of size 1.
+  thing for every rover. Each update takes every rover's batch: the losses below are
+  averaged over rovers, one gradient step per network, so the shared networks learn from N
+  times the data. Parameters keep a leading group axis of size 1.
 * ``critic_neighbors`` C > 0 (MADDPG): the critic of rover i sees o_i, a_i and the
   observations and actions of the C other rovers nearest to it in that transition, nearest
   first, in place of all N: between the centralised critic and DDPG's local one.
