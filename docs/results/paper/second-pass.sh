@@ -45,4 +45,7 @@ variants=(
 arms=(--episodes 20000 --algorithms maddpg maddpg-optimizer --variants "${variants[@]}")
 roverswarm reproduce --out "$out/reference-k1" --scenarios paper-2 paper-3 paper-4 paper-5 "${arms[@]}"
 roverswarm reproduce --out "$out/reference-k3" --scenarios paper-4 paper-5 --ensemble 3 "${arms[@]}"
+# N = 4 and 5 first (they matter most, and the part takes about 6 hours); the next line adds
+# N = 2 and 3 to the same folder, keeping the runs and timings already made.
+roverswarm reproduce --out "$out/swarm-k1" --preset swarm --scenarios paper-4 paper-5 "${arms[@]}"
 roverswarm reproduce --out "$out/swarm-k1" --preset swarm --scenarios paper-2 paper-3 paper-4 paper-5 "${arms[@]}"
