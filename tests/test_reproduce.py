@@ -273,8 +273,43 @@ def test_the_grid_sets_preset_ensembles_inferred_policies_and_the_optimizer(tmp_
     swarm = ["reproduce", "--out", str(tmp_path), "--preset", "swarm", "--ensemble", "3"]
     assert main(swarm) == 2
     assert "--share-parameters does not compose with --ensemble > 1" in capsys.readouterr().err
+    variants = ReproduceConfig(
+        out=tmp_path, scenarios=("paper-4",), algorithms=("ddpg", "ddpg-optimizer"), variants=("a", "b:alpha=3")
+    )
+    runs = {run.algorithm: run.config for run in plan(variants, PRESETS["reference"])}
+    grid = dict(scenario="paper-4", episodes=60_000, seeds=5, algo="ddpg")
+    assert runs == {
+        "ddpg": with_options(PRESETS["reference"], grid),
+        "ddpg-optimizer-a": with_options(PRESETS["reference"], dict(grid, replay="ranked")),
+        "ddpg-optimizer-b": with_options(PRESETS["reference"], dict(grid, replay="ranked", alpha=3.0)),
+    }
     assert main(["reproduce", "--out", str(tmp_path), "--algorithms", "maddpg", "--variants", "a"]) == 2
-    assert "--variants needs maddpg-optimizer in --algorithms" in capsys.readouterr().err
+    assert "--variants needs maddpg-optimizer or ddpg-optimizer in --algorithms" in capsys.readouterr().err
+
+
+def test_ddpg_with_the_optimizer_is_compared_with_ddpg(base, finished, tmp_path):
+    """A `ddpg-optimizer` arm beside the paper's three learners of ``finished`` (copied): each
+    optimizer arm's Table I row is the paired change against its own plain learner, recomputed
+    from the run folders; only MADDPG's row carries the paper's value (its Table I is about
+    MADDPG)."""
+    runs = tmp_path / "runs" / "paper-2"
+    for algorithm in ALGORITHMS:
+        shutil.copytree(finished / "runs" / "paper-2" / algorithm, runs / algorithm)
+    reproduce(tiny_grid(tmp_path, scenarios=("paper-2",), algorithms=(*ALGORITHMS, "ddpg-optimizer")), base, live=False)
+    saved = config_from_json((runs / "ddpg-optimizer" / "config.json").read_text())
+    assert saved == with_options(base, dict(scenario="paper-2", episodes=400, seeds=2, algo="ddpg", replay="ranked"))
+    table = read_table(tmp_path / "table1.csv")
+    assert [(r["arm"], r["against"]) for r in table] == [("MADDPG + optimizer", "MADDPG"), ("DDPG + optimizer", "DDPG")]
+    for row, (treated, control) in zip(table, [("maddpg-optimizer", "maddpg"), ("ddpg-optimizer", "ddpg")]):
+        (plain, plain_last), (opt, opt_last) = per_seed(runs / control), per_seed(runs / treated)
+        assert_paired(*(row[f"reward_{k}"] for k in ("change_pct", "ci_low", "ci_high", "p")), opt, plain)
+        assert_paired(*(row[f"last_{k}"] for k in ("change_pct", "ci_low", "ci_high", "p")), opt_last, plain_last)
+    assert (table[0]["paper_reward_change_pct"], table[0]["paper_time_change_pct"]) == PAPER_TABLE1[2]
+    assert np.isnan(table[1]["paper_reward_change_pct"]) and np.isnan(table[1]["paper_time_change_pct"])
+    report = (tmp_path / "report.md").read_text()
+    assert "- *DDPG + optimizer helps more as N grows* (not a claim of the paper): needs at least two" in report
+    assert "- *MADDPG + optimizer helps more as N grows*: needs at least two" in report
+    assert "| 2 | DDPG + optimizer | DDPG |" in report and "| 2 | MADDPG + optimizer | MADDPG |" in report
 
 
 def test_the_paired_change_interval_covers_the_truth_95_percent_of_the_time():

@@ -13,28 +13,35 @@
 #     chunk costs about 3.75x a K = 1 chunk, docs/results/extensions-cost.md);
 #   * the swarm preset shares one network across rovers, which ensembles cannot compose
 #     with, so it runs K = 1 only;
-#   * DDPG, already in the first pass, is left out.
+#   * DDPG, already in the first pass, is left out as a learner of the paper; but the swarm
+#     preset's DDPG (its local critic) is the learner that learns best at N = 4 and 5
+#     (docs/results/swarm/README.md), so part swarm-ddpg-k1 tests the optimizer on it there.
 # Readings: `paper` (today's, alpha 1, beta 0.1), `sharp` (alpha 3: the largest loss drawn
 # 4x as often as the average), `schaul` (Schaul et al.'s 1/rank, alpha 0.7, importance
 # weights annealed from 0.5); all three re-rank every 25 updates instead of 250.
 #
-# The plain MADDPG arms at K = 1 are the runs of docs/results/swarm/scale.yaml (the same
-# settings, seeds and budget): give that sweep's output folder as the second argument and
-# they are copied instead of trained again (reproduce checks each copy's settings).
+# The plain arms at K = 1 (MADDPG; the swarm preset's DDPG) are the runs of
+# docs/results/swarm/scale.yaml (the same settings, seeds and budget): give that sweep's output
+# folder as the second argument and they are copied instead of trained again (reproduce
+# checks each copy's settings).
 # Each finished part's report.md, table1.*, fig8/9.png, final_policies.csv and timing.csv are
 # committed in docs/results/paper/second-pass/<part>/ (docs/reproduce.md#the-second-pass).
 set -euo pipefail
 out=${1:-results/paper-second-pass}
 scale=${2:-}
+copy() {  # a finished run of the scale sweep into the grid, unless it is there already
+  if [[ -d "$1" && ! -e "$2" ]]; then
+    mkdir -p "$(dirname "$2")" && cp -r "$1" "$2" && rm -f "$2/.lock"
+  fi
+}
 if [[ -n "$scale" ]]; then
   for preset in reference swarm; do
     for n in 2 3 4 5; do
-      from="$scale/runs/paper-$n/$preset"
-      to="$out/$preset-k1/runs/paper-$n/maddpg"
-      if [[ -d "$from" && ! -e "$to" ]]; then
-        mkdir -p "$(dirname "$to")" && cp -r "$from" "$to" && rm -f "$to/.lock"
-      fi
+      copy "$scale/runs/paper-$n/$preset" "$out/$preset-k1/runs/paper-$n/maddpg"
     done
+  done
+  for n in 4 5; do
+    copy "$scale/runs/paper-$n/swarm-ddpg" "$out/swarm-ddpg-k1/runs/paper-$n/ddpg"
   done
 fi
 variants=(
@@ -45,7 +52,10 @@ variants=(
 arms=(--episodes 20000 --algorithms maddpg maddpg-optimizer --variants "${variants[@]}")
 roverswarm reproduce --out "$out/reference-k1" --scenarios paper-2 paper-3 paper-4 paper-5 "${arms[@]}"
 roverswarm reproduce --out "$out/reference-k3" --scenarios paper-4 paper-5 --ensemble 3 "${arms[@]}"
-# N = 4 and 5 first (they matter most, and the part takes about 6 hours); the next line adds
-# N = 2 and 3 to the same folder, keeping the runs and timings already made.
+# N = 4 and 5 first (they matter most, and swarm-k1 takes about 6 hours), then the optimizer
+# on the swarm preset's DDPG (N = 4 and 5 only: where it learns better than MADDPG); the last
+# line adds N = 2 and 3 to swarm-k1's folder, keeping the runs and timings already made.
 roverswarm reproduce --out "$out/swarm-k1" --preset swarm --scenarios paper-4 paper-5 "${arms[@]}"
+roverswarm reproduce --out "$out/swarm-ddpg-k1" --preset swarm --scenarios paper-4 paper-5 --episodes 20000 \
+  --algorithms ddpg ddpg-optimizer --variants "${variants[@]}"
 roverswarm reproduce --out "$out/swarm-k1" --preset swarm --scenarios paper-2 paper-3 paper-4 paper-5 "${arms[@]}"

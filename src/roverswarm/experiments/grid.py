@@ -36,16 +36,19 @@ ALGORITHMS: dict[str, dict[str, str]] = {
     "ddpg": {"algo": "ddpg", "replay": "uniform"},
     "maddpg": {"algo": "maddpg", "replay": "uniform"},
     "maddpg-optimizer": {"algo": "maddpg", "replay": "ranked"},
+    "ddpg-optimizer": {"algo": "ddpg", "replay": "ranked"},
     "mappo": {"preset": "mappo"},
     "ippo": {"preset": "ippo"},
 }
 """The arms of the grid: the paper's three learners (DDPG, MADDPG, and MADDPG with the
-experience sample optimizer) at the grid's base settings, and two on-policy learners beside
-them, each from its own preset (``preset``)."""
+experience sample optimizer) and DDPG with the optimizer at the grid's base settings, and two
+on-policy learners beside them, each from its own preset (``preset``)."""
 
-Algorithm = Literal["ddpg", "maddpg", "maddpg-optimizer", "mappo", "ippo"]
+Algorithm = Literal["ddpg", "maddpg", "maddpg-optimizer", "ddpg-optimizer", "mappo", "ippo"]
 
-OPTIMIZER = "maddpg-optimizer"
+OPTIMIZERS = {"maddpg-optimizer": "maddpg", "ddpg-optimizer": "ddpg"}
+"""The optimizer arms and the plain learner each is compared with on the same seeds (the
+paper's Table I: MADDPG's)."""
 
 
 def _flag(text: str) -> bool:
@@ -76,7 +79,9 @@ class ReproduceConfig:
     scenarios: tuple[str, ...] = ("paper-2", "paper-3", "paper-4", "paper-5")
     """Scenario presets, one per swarm size N."""
     algorithms: tuple[Algorithm, ...] = ("ddpg", "maddpg", "maddpg-optimizer")
-    """Learners to compare (Table I needs maddpg and maddpg-optimizer). `mappo` and `ippo` add
+    """Learners to compare (Table I needs maddpg and maddpg-optimizer, or ddpg and
+    ddpg-optimizer). `ddpg-optimizer` adds DDPG with the optimizer, compared with `ddpg` (not a
+    claim of the paper: the optimizer on a learner with local critics). `mappo` and `ippo` add
     an on-policy arm beside the paper's, trained from its own preset (docs/training.md)."""
     seeds: int | None = None
     """Seeds per run, vmapped together (default 5; 2 with --quick)."""
@@ -103,11 +108,12 @@ class ReproduceConfig:
     refresh_every: int | None = None
     """Updates between the optimizer's re-rankings. Default: the preset's (250 for `reference`)."""
     variants: tuple[str, ...] = ()
-    """Several optimizer arms against the one plain MADDPG arm, on the same seeds: each
+    """Several optimizer arms against the one plain arm, on the same seeds: each
     `NAME` or `NAME:OPTION=VALUE,...` over the optimizer options above (reading, alpha, beta,
     refresh_every, importance_weights, importance_exponent), e.g. `paper` `sharp:alpha=3`
     `schaul:reading=schaul,alpha=0.7,beta=0,importance_weights=true,importance_exponent=0.5`.
-    Arm NAME trains in runs/<scenario>/maddpg-optimizer-NAME. Default: one arm, maddpg-optimizer."""
+    Arm NAME trains in runs/<scenario>/maddpg-optimizer-NAME (and ddpg-optimizer-NAME, if
+    ddpg-optimizer is in --algorithms). Default: one arm per optimizer algorithm."""
     force: bool = False
     """Train every run again, even finished ones."""
     time_chunks: int | None = None
@@ -191,23 +197,26 @@ def parse_variant(text: str) -> tuple[str, dict[str, object]]:
     return name, options
 
 
-def optimizer_arms(config: ReproduceConfig) -> dict[str, dict[str, object]]:
-    """Every optimizer arm's name and its replay options (the optimizer flags, then the variant's)."""
+def optimizer_arms(config: ReproduceConfig, optimizer: str) -> dict[str, dict[str, object]]:
+    """Every arm of the optimizer algorithm ``optimizer`` (a key of :data:`OPTIMIZERS`): its
+    name and settings (the optimizer flags, then the variant's)."""
     flags = {k: getattr(config, k) for k in ("reading", "alpha", "beta", "refresh_every")}
-    common = {"algo": "maddpg", "replay": "ranked", **{k: v for k, v in flags.items() if v is not None}}
+    common = {**ALGORITHMS[optimizer], **{k: v for k, v in flags.items() if v is not None}}
     if not config.variants:
-        return {OPTIMIZER: common}
+        return {optimizer: common}
     arms = {}
     for text in config.variants:
         name, options = parse_variant(text)
-        require(f"{OPTIMIZER}-{name}" not in arms, f"--variants: the name '{name}' is given twice")
-        arms[f"{OPTIMIZER}-{name}"] = {**common, **options}
+        require(f"{optimizer}-{name}" not in arms, f"--variants: the name '{name}' is given twice")
+        arms[f"{optimizer}-{name}"] = {**common, **options}
     return arms
 
 
-def is_optimizer(algorithm: str) -> bool:
-    """Whether a grid arm is MADDPG with the optimizer (the default arm or a ``--variants`` one)."""
-    return algorithm == OPTIMIZER or algorithm.startswith(OPTIMIZER + "-")
+def optimizer_of(algorithm: str) -> str | None:
+    """The optimizer algorithm (a key of :data:`OPTIMIZERS`) a grid arm runs, for the default
+    arm and the ``--variants`` ones (``maddpg-optimizer-sharp`` -> ``maddpg-optimizer``);
+    None for an arm without the optimizer."""
+    return next((o for o in OPTIMIZERS if algorithm == o or algorithm.startswith(o + "-")), None)
 
 
 def plan(config: ReproduceConfig, base: TrainConfig | None = None) -> list[GridRun]:
@@ -233,10 +242,15 @@ def plan(config: ReproduceConfig, base: TrainConfig | None = None) -> list[GridR
         f"--jobs must be in [1, {cpus}] (the CPUs this process may use), got {config.jobs}",
     )
     require(config.jobs is None or config.backend == "local", "--jobs is for --backend local (Ray places its tasks)")
-    require(not config.variants or OPTIMIZER in config.algorithms, f"--variants needs {OPTIMIZER} in --algorithms")
+    require(
+        not config.variants or any(a in OPTIMIZERS for a in config.algorithms),
+        f"--variants needs {' or '.join(OPTIMIZERS)} in --algorithms",
+    )
     arms: dict[str, dict[str, object]] = {}
     for algorithm in config.algorithms:
-        arms.update(optimizer_arms(config) if algorithm == OPTIMIZER else {algorithm: dict(ALGORITHMS[algorithm])})
+        arms.update(
+            optimizer_arms(config, algorithm) if algorithm in OPTIMIZERS else {algorithm: dict(ALGORITHMS[algorithm])}
+        )
     paper = {} if config.ensemble is None else {"ensemble": config.ensemble}
     runs = []
     for scenario in config.scenarios:

@@ -15,7 +15,8 @@ Definitions (the paper's, made precise):
   collisions, trap contacts), as in ``roverswarm sweep``.
 
 Table I's relative changes compare each optimizer arm (MADDPG with the optimizer, one arm
-per ``--variants`` reading) against plain MADDPG at each N:
+per ``--variants`` reading; DDPG with it, if the grid has it) against its plain learner
+(MADDPG; DDPG) at each N:
 ``100 * (mean_opt - mean_plain) / |mean_plain|``. The arms share their seeds (same
 initialisation keys and layouts), so rewards are compared *paired*, seed by seed
 (:func:`paired_change`): the 95% interval is the delta-method interval of the ratio of the
@@ -47,7 +48,7 @@ from rich.console import Console
 
 from roverswarm.algos.learner import ON_POLICY
 from roverswarm.env.scenarios import get_scenario
-from roverswarm.experiments.grid import OPTIMIZER, GridRun, ReproduceConfig, is_optimizer, run_grid
+from roverswarm.experiments.grid import OPTIMIZERS, GridRun, ReproduceConfig, optimizer_of, run_grid
 from roverswarm.experiments.sweep import evaluation, table_row
 from roverswarm.experiments.timing import chunk_seconds
 from roverswarm.jaxcache import release_compiled_programs
@@ -59,6 +60,7 @@ PAPER_TABLE1: dict[int, tuple[float, float]] = {2: (1.42, 2.26), 3: (3.08, 2.50)
 
 LABELS = {
     "ddpg": "DDPG",
+    "ddpg-optimizer": "DDPG + optimizer",
     "maddpg": "MADDPG",
     "maddpg-optimizer": "MADDPG + optimizer",
     "mappo": "MAPPO",
@@ -71,16 +73,18 @@ TIMING = "timing.csv"
 
 
 def label(algorithm: str) -> str:
-    """A grid arm's name in tables and figures; an optimizer variant's is "MADDPG + optimizer (NAME)"."""
+    """A grid arm's name in tables and figures; an optimizer variant's is "MADDPG + optimizer (NAME)"
+    (or "DDPG + optimizer (NAME)")."""
     if algorithm in LABELS:
         return LABELS[algorithm]
-    return f"{LABELS[OPTIMIZER]} ({algorithm.removeprefix(OPTIMIZER + '-')})"
+    optimizer = optimizer_of(algorithm)
+    return f"{LABELS[optimizer]} ({algorithm.removeprefix(optimizer + '-')})"
 
 
 def _order(algorithm: str) -> int:
     """Sort key of the arms: the order of :data:`LABELS`, optimizer variants where the
     optimizer is (a stable sort keeps them in the grid's order)."""
-    return list(LABELS).index(OPTIMIZER if is_optimizer(algorithm) else algorithm)
+    return list(LABELS).index(optimizer_of(algorithm) or algorithm)
 
 
 @dataclass(frozen=True)
@@ -221,6 +225,7 @@ def pooled_change(pairs: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float, fl
 TABLE1_COLUMNS = [
     "rovers",
     "arm",
+    "against",
     "reward_change_pct",
     "reward_ci_low",
     "reward_ci_high",
@@ -239,18 +244,22 @@ TABLE1_COLUMNS = [
 
 
 def optimizer_pairs(results: list[RunResult]) -> list[tuple[int, RunResult, RunResult]]:
-    """(N, optimizer arm, plain MADDPG) for every optimizer arm and N where both ran."""
-    plain = {r.rovers: r for r in results if r.run.algorithm == "maddpg"}
-    arms = list(dict.fromkeys(r.run.algorithm for r in results if is_optimizer(r.run.algorithm)))  # grid order
+    """(N, optimizer arm, its plain learner) for every optimizer arm and N where both ran; the
+    plain learner is the arm of :data:`~roverswarm.experiments.grid.OPTIMIZERS` (MADDPG for
+    MADDPG + optimizer)."""
+    by = {(r.rovers, r.run.algorithm): r for r in results}
+    arms = list(dict.fromkeys(r.run.algorithm for r in results if optimizer_of(r.run.algorithm)))  # grid order
     runs = sorted(
         (r for r in results if r.run.algorithm in arms), key=lambda r: (arms.index(r.run.algorithm), r.rovers)
     )
-    return [(r.rovers, r, plain[r.rovers]) for r in runs if r.rovers in plain]
+    keys = ((r, (r.rovers, OPTIMIZERS[optimizer_of(r.run.algorithm)])) for r in runs)
+    return [(r.rovers, r, by[key]) for r, key in keys if key in by]
 
 
 def table1(results: list[RunResult]) -> list[dict[str, object]]:
     """One row per N and optimizer arm: Table I (maximum and last-window reward, paired; time)
-    with intervals, p-values and the paper's values."""
+    against the arm's plain learner, with intervals, p-values and the paper's values (for
+    MADDPG + optimizer only: the paper's Table I compares it with MADDPG)."""
     rows = []
     for n, optimized, plain in optimizer_pairs(results):
         reward = paired_change(optimized.best, plain.best)
@@ -259,15 +268,17 @@ def table1(results: list[RunResult]) -> list[dict[str, object]]:
             seconds = paired_change(optimized.timed, plain.timed)
         else:
             seconds = relative_change(optimized.chunk_seconds, plain.chunk_seconds)
-        paper = PAPER_TABLE1.get(n, (float("nan"), float("nan")))
-        values = (n, label(optimized.run.algorithm), *reward, *last, paper[0], *seconds, paper[1])
+        papers = PAPER_TABLE1 if plain.run.algorithm == "maddpg" else {}
+        paper = papers.get(n, (float("nan"), float("nan")))
+        arms = (label(optimized.run.algorithm), label(plain.run.algorithm))
+        values = (n, *arms, *reward, *last, paper[0], *seconds, paper[1])
         rows.append(dict(zip(TABLE1_COLUMNS, values)))
     return rows
 
 
 def pooled_rows(results: list[RunResult]) -> list[dict[str, object]]:
-    """Per optimizer arm: its change against plain MADDPG pooled across N, for the maximum and
-    the last-window reward (:func:`pooled_change`)."""
+    """Per optimizer arm: its change against its plain learner pooled across N, for the maximum
+    and the last-window reward (:func:`pooled_change`)."""
     rows = []
     every = optimizer_pairs(results)
     for arm in dict.fromkeys(t.run.algorithm for _, t, _ in every):
@@ -289,12 +300,19 @@ def _change(change: float, low: float, high: float, p: float) -> str:
 
 def table1_markdown(rows: list[dict[str, object]]) -> str:
     change = lambda r, part: _change(*(r[f"{part}_{k}"] for k in ("change_pct", "ci_low", "ci_high", "p")))  # noqa: E731
-    header = ["N", "optimizer arm", "max reward change (ours) | 95% CI | p", "last-window reward change | 95% CI | p"]
+    header = [
+        "N",
+        "optimizer arm",
+        "against",
+        "max reward change (ours) | 95% CI | p",
+        "last-window reward change | 95% CI | p",
+    ]
     header += ["paper", "time per 1000 episodes change (ours) | 95% CI | p", "paper"]
     body = [
         [
             str(r["rovers"]),
             str(r["arm"]),
+            str(r["against"]),
             change(r, "reward"),
             change(r, "last"),
             _fmt(r["paper_reward_change_pct"], suffix="%"),
@@ -391,8 +409,9 @@ def verdicts(results: list[RunResult], rows: list[dict[str, object]]) -> list[st
     lines = []
     for arm in dict.fromkeys(r["arm"] for r in rows):
         mine = [r for r in rows if r["arm"] == arm]
+        aside = "" if mine[0]["against"] == LABELS["maddpg"] else " (not a claim of the paper)"
         if len(mine) < 2:
-            lines.append(f"- *{arm} helps more as N grows*: needs at least two swarm sizes with both arms.")
+            lines.append(f"- *{arm} helps more as N grows*{aside}: needs at least two swarm sizes with both arms.")
             continue
         sizes = [r["rovers"] for r in mine]
         changes = [r["reward_change_pct"] for r in mine]
@@ -400,14 +419,17 @@ def verdicts(results: list[RunResult], rows: list[dict[str, object]]) -> list[st
         significant = sum(1 for r in mine if r["reward_p"] < 0.05 and r["reward_change_pct"] > 0)
         grows = slope > 0 and changes[-1] > 0
         lines.append(
-            f"- *{arm} helps more as N grows*: "
+            f"- *{arm} helps more as N grows*{aside}: "
             f"{'supported' if grows and significant else 'not supported'} by our runs. "
-            f"Its maximum-reward change against MADDPG goes {', '.join(f'{c:+.1f}%' for c in changes)} for "
+            f"Its maximum-reward change against {mine[0]['against']} goes "
+            f"{', '.join(f'{c:+.1f}%' for c in changes)} for "
             f"N = {', '.join(map(str, sizes))} (trend {slope:+.2f} points per rover); {significant} of {len(mine)} "
             "changes are positive with p < 0.05 (paired over seeds)."
         )
     if not rows:
-        lines.append("- *The optimizer helps more as N grows*: needs MADDPG and an optimizer arm at the same N.")
+        lines.append(
+            "- *The optimizer helps more as N grows*: needs an optimizer arm and its plain learner at the same N."
+        )
     by = {(r.rovers, r.run.algorithm): r for r in results}
     pairs = [
         (n, by[(n, "maddpg")], by[(n, "ddpg")])
@@ -483,7 +505,7 @@ def _arm_settings(results: list[RunResult]) -> list[str]:
     names = ("reading", "alpha", "beta", "refresh_every", "importance_weights", "importance_exponent")
     lines = {}
     for r in results:
-        if is_optimizer(r.run.algorithm):
+        if optimizer_of(r.run.algorithm):
             replay = r.run.config.buffer
             options = ", ".join(f"{n}={getattr(replay, n)}" for n in names)
             lines.setdefault(r.run.algorithm, f"  - {label(r.run.algorithm)}: {options}")
@@ -506,7 +528,8 @@ def write_report(
         body.append([str(r.rovers), label(r.run.algorithm), *cells])
     per_run = markdown_table(header, body)
     training = sum(float(r.chunk_seconds.sum()) for r in results)
-    example = next((r.run.config for r in results if r.run.algorithm == "maddpg"), results[0].run.config)
+    shown = next((r.run.algorithm for r in results if r.run.algorithm == "maddpg"), results[0].run.algorithm)
+    example = next(r.run.config for r in results if r.run.algorithm == shown)
     arms = ", ".join(label(a) for a in sorted(dict.fromkeys(r.run.algorithm for r in results), key=_order))
     if any(r.timed is not None for r in results):
         time_note = (
@@ -524,9 +547,9 @@ def write_report(
 - Grid: scenarios {", ".join(config.scenarios)} x {arms}; \
 {example.seeds} seeds per run (vmapped), {example.episodes} episodes per seed{" (--quick)" if config.quick else ""}; \
 the paper's learners at `--preset {config.preset}`.
-- Optimizer arms (the ranked replay's settings; the rest as plain MADDPG's):
+- Optimizer arms (the ranked replay's settings; the rest as their plain learner's):
 {chr(10).join(_arm_settings(results))}
-- Plain MADDPG's full training configuration (the grid sets scenario, algorithm, replay, episodes, seeds and \
+- {label(shown)}'s full training configuration (the grid sets scenario, algorithm, replay, episodes, seeds and \
 seed; the rest is the same for every run of the paper's learners; MAPPO and IPPO start from their own presets, \
 stored in their runs' `config.json`):
 
@@ -541,7 +564,7 @@ stored in their runs' `config.json`):
 counted); training time recorded in the runs' metrics (all runs, all chunks, whichever command ran them): \
 {training / 60:.1f} min.
 
-## Table I: MADDPG + experience sample optimizer vs MADDPG
+## Table I: the experience sample optimizer vs the same learner without it
 
 {table1_markdown(rows)}
 Relative changes of the means, `100 * (optimizer - plain) / |plain|`. Rewards: per seed, the maximum mean
