@@ -16,6 +16,7 @@ from roverswarm.cli import main
 from roverswarm.config import with_options
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
+from roverswarm.experiments.grid import usable_cpus
 from roverswarm.experiments.sweep import SweepConfig, gapped, load_sweep, read_table, sweep
 from roverswarm.rollout import rollout
 from roverswarm.runs import Run, write_csv
@@ -91,6 +92,36 @@ def test_a_rerun_keeps_finished_runs(finished, monkeypatch):
     config, _ = finished
     monkeypatch.setattr(grid_module, "train", lambda *a, **k: pytest.fail("a finished run was trained again"))
     sweep(config, live=False)
+
+
+@pytest.mark.skipif(len(usable_cpus()) < 2, reason="needs 2 CPUs")
+def test_jobs_train_a_sweep_side_by_side_to_the_numbers_of_one_process(finished, tmp_path, capsys, monkeypatch):
+    """Two settings of the fixture's sweep (trained one after another in this process) again
+    with --jobs 2, each run in its own process: the same metrics, wall time aside, and the same
+    table."""
+    import roverswarm.experiments.grid as grid_module
+
+    monkeypatch.setattr(grid_module, "run_local", lambda *a, **k: pytest.fail("a run trained in this process"))
+    config, _ = finished
+    spec = yaml.safe_load(config.file.read_text())
+    spec["settings"] = {k: v for k, v in spec["settings"].items() if k != "mappo"}
+    (tmp_path / "two.yaml").write_text(yaml.safe_dump(spec))
+    sweep(SweepConfig(tmp_path / "two.yaml", tmp_path / "out", eval_episodes=50, jobs=2), live=False)
+    for setting in spec["settings"]:
+        ours, theirs = (
+            read_table(out / "runs" / "paper-2" / setting / "metrics.csv") for out in (tmp_path / "out", config.out)
+        )
+        assert [{k: v for k, v in r.items() if k != "wall_seconds"} for r in ours] == [
+            {k: v for k, v in r.items() if k != "wall_seconds"} for r in theirs
+        ]
+    ours, theirs = (read_table(out / "sweep.csv") for out in (tmp_path / "out", config.out))
+    kept = ("setting", "scores", "mean_score", "collisions", "trap_contacts")
+    assert [{k: r[k] for k in kept} for r in ours] == [
+        {k: r[k] for k in kept} for r in theirs if r["setting"] != "mappo"
+    ]
+    for jobs in (0, len(usable_cpus()) + 1):
+        assert main(["sweep", str(tmp_path / "two.yaml"), "--out", str(tmp_path / "out"), "--jobs", str(jobs)]) == 2
+        assert f"--jobs must be in [1, {len(usable_cpus())}]" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(

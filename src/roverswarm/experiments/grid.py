@@ -236,11 +236,7 @@ def plan(config: ReproduceConfig, base: TrainConfig | None = None) -> list[GridR
     require(config.grid_time_chunks >= 0, f"--time-chunks must be >= 0, got {config.grid_time_chunks}")
     require(config.grid_eval_episodes >= 1, f"--eval-episodes must be >= 1, got {config.grid_eval_episodes}")
     require(config.address is None or config.backend == "ray", "--address needs --backend ray")
-    cpus = len(usable_cpus())
-    require(
-        config.jobs is None or 1 <= config.jobs <= cpus,
-        f"--jobs must be in [1, {cpus}] (the CPUs this process may use), got {config.jobs}",
-    )
+    check_jobs(config.jobs)
     require(config.jobs is None or config.backend == "local", "--jobs is for --backend local (Ray places its tasks)")
     require(
         not config.variants or any(a in OPTIMIZERS for a in config.algorithms),
@@ -376,6 +372,23 @@ def default_jobs(runs: list[GridRun]) -> int:
     return max(1, min(len(runs), len(usable_cpus()), fit))
 
 
+def check_jobs(jobs: int | None) -> None:
+    """A ``--jobs`` value is None (the default) or between 1 and the CPUs this process may use."""
+    cpus = len(usable_cpus())
+    require(
+        jobs is None or 1 <= jobs <= cpus, f"--jobs must be in [1, {cpus}] (the CPUs this process may use), got {jobs}"
+    )
+
+
+def train_runs(runs: list[GridRun], summary: Summary, jobs: int, keep_programs: bool = False) -> None:
+    """Train ``runs`` ``jobs`` at a time in processes of their own (:func:`run_jobs`), or with
+    one job one after another in this process (:func:`run_local`)."""
+    if jobs > 1:
+        run_jobs(runs, summary, jobs)
+    else:
+        run_local(runs, summary, keep_programs)
+
+
 def usable_cpus() -> list[int]:
     """The CPUs this process may use (all of them where the system cannot say, e.g. macOS)."""
     if hasattr(os, "sched_getaffinity"):
@@ -508,10 +521,9 @@ def run_grid(config: ReproduceConfig, base: TrainConfig | None = None, live: boo
     summary = Summary(runs, done)
     if config.backend == "ray":
         execute: Callable[[], None] = lambda: run_ray(todo, summary, config.address, config.retries)  # noqa: E731
-    elif (jobs := config.jobs or default_jobs(todo)) > 1:
-        execute = lambda: run_jobs(todo, summary, jobs)  # noqa: E731
     else:
-        execute = lambda: run_local(todo, summary, config.keep_programs)  # noqa: E731
+        jobs = config.jobs or default_jobs(todo)
+        execute = lambda: train_runs(todo, summary, jobs, config.keep_programs)  # noqa: E731
     if live:
         with Live(summary, console=Console(), refresh_per_second=2):
             execute()

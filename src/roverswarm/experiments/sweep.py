@@ -40,7 +40,7 @@ from rich.live import Live
 
 from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
-from roverswarm.experiments.grid import GridRun, Summary, run_local, status
+from roverswarm.experiments.grid import GridRun, Summary, check_jobs, default_jobs, status, train_runs
 from roverswarm.config import PRESETS, validate, with_options
 from roverswarm.runs import METRICS, atomic_write, folder_lock, markdown_table, read_metrics, write_csv
 
@@ -57,6 +57,11 @@ class SweepConfig:
     """Output folder: runs/, sweep.csv and sweep.md."""
     eval_episodes: int = 1000
     """Deterministic evaluation episodes per policy (the same layouts for every policy)."""
+    jobs: int | None = None
+    """Runs trained side by side, each in its own process on its share of the CPUs, in the
+    file's order, the table growing after each group (as `reproduce --jobs`). Default: one at
+    a time for runs under 5000 episodes, else as many as the CPUs, the memory the runs need
+    and the runs left allow; 1 trains them one after another in this process."""
 
 
 def load_sweep(path: Path, out: Path) -> list[GridRun]:
@@ -211,18 +216,24 @@ def markdown(rows: list[dict[str, object]]) -> str:
 
 def sweep(config: SweepConfig, live: bool = True) -> Path:
     """Train and evaluate every run of the sweep file; write ``sweep.csv`` and ``sweep.md``
-    after each run, so a long sweep shows its results as they come. Returns ``sweep.md``."""
+    after each run (with ``jobs``, each group of runs trained side by side), so a long sweep
+    shows its results as they come. Returns ``sweep.md``."""
     require(config.eval_episodes >= 1, f"--eval-episodes must be >= 1, got {config.eval_episodes}")
+    check_jobs(config.jobs)
     runs = load_sweep(config.file, config.out)
     done = {run.name for run in runs if status(run) == "done"}
+    todo = [run for run in runs if run.name not in done]
+    jobs = config.jobs or default_jobs(todo)
     summary = Summary(runs, done)
     table: list[dict[str, object]] = []
     config.out.mkdir(parents=True, exist_ok=True)
 
     def execute() -> None:
         for run in runs:
-            if run.name not in done:
-                run_local([run], summary)
+            if todo and todo[0] == run:  # it and the next runs left, up to one per job, side by side
+                group = todo[:jobs]
+                train_runs(group, summary, len(group))
+                del todo[: len(group)]
             table.append(table_row(run, evaluation(run, config.eval_episodes)))
             write_csv(config.out / "sweep.csv", table)
             atomic_write(config.out / "sweep.md", lambda f: f.write(markdown(table)))
