@@ -528,8 +528,8 @@ def write_report(
         body.append([str(r.rovers), label(r.run.algorithm), *cells])
     per_run = markdown_table(header, body)
     training = sum(float(r.chunk_seconds.sum()) for r in results)
-    shown = next((r.run.algorithm for r in results if r.run.algorithm == "maddpg"), results[0].run.algorithm)
-    example = next(r.run.config for r in results if r.run.algorithm == shown)
+    shown = next((r.run for r in results if r.run.algorithm == "maddpg"), results[0].run)  # its config, in full
+    example, example_label = shown.config, label(shown.algorithm)
     arms = ", ".join(label(a) for a in sorted(dict.fromkeys(r.run.algorithm for r in results), key=_order))
     if any(r.timed is not None for r in results):
         time_note = (
@@ -549,7 +549,7 @@ def write_report(
 the paper's learners at `--preset {config.preset}`.
 - Optimizer arms (the ranked replay's settings; the rest as their plain learner's):
 {chr(10).join(_arm_settings(results))}
-- {label(shown)}'s full training configuration (the grid sets scenario, algorithm, replay, episodes, seeds and \
+- {example_label}'s full training configuration (the grid sets scenario, algorithm, replay, episodes, seeds and \
 seed; the rest is the same for every run of the paper's learners; MAPPO and IPPO start from their own presets, \
 stored in their runs' `config.json`):
 
