@@ -24,6 +24,7 @@ from roverswarm.errors import RunStopped, UserError
 from roverswarm.experiments import ReproduceConfig, reproduce
 from roverswarm.experiments.paper import PAPER_TABLE1, paired_change, paired_p, relative_change
 from roverswarm.config import MAPPO, PRESETS, config_from_json, with_options
+from roverswarm.runs import write_csv
 
 SCENARIOS = ("paper-2", "paper-3")
 ALGORITHMS = ("ddpg", "maddpg", "maddpg-optimizer")
@@ -166,6 +167,48 @@ def test_two_optimizer_variants_against_one_maddpg_arm(base, finished, tmp_path,
     assert "'gamma' in 'bad:gamma=0.5' is not an optimizer option" in capsys.readouterr().err
     assert main(["reproduce", "--out", str(tmp_path), "--variants", "a:alpha=x"]) == 2
     assert "--variants: alpha in 'a:alpha=x'" in capsys.readouterr().err
+
+
+def test_the_ensembles_script_compares_two_parts_unpaired_where_both_ran(finished, tmp_path, monkeypatch, capsys):
+    """docs/results/paper/ensembles.py on two stand-in parts (reference-k1: the plain MADDPG
+    runs of ``finished``; reference-k3: its optimizer runs, at paper-2 only): one row per
+    reading at N = 2, each K = 3 vs K = 1 change recomputed with scipy's Welch test."""
+    import runpy
+    import sys
+
+    for part, arm, scenarios in (
+        ("reference-k1", "maddpg", SCENARIOS),
+        ("reference-k3", "maddpg-optimizer", SCENARIOS[:1]),
+    ):
+        for scenario in scenarios:
+            shutil.copytree(finished / "runs" / scenario / arm, tmp_path / part / "runs" / scenario / "maddpg")
+    seconds = {"reference-k1": [10.0, 11.0, 12.0], "reference-k3": [40.0, 41.0, 45.0]}
+    for part, xs in seconds.items():
+        rows = [{"scenario": "paper-2", "arm": "maddpg", "chunk": j, "seconds_per_1000": x} for j, x in enumerate(xs)]
+        write_csv(tmp_path / part / "timing.csv", rows)
+    script = Path(__file__).parents[1] / "docs" / "results" / "paper" / "ensembles.py"
+    argv = ["ensembles.py", str(tmp_path), "--csv", str(tmp_path / "e.csv"), "--eval-episodes", "50"]
+    monkeypatch.setattr(sys, "argv", argv)
+    runpy.run_path(str(script), run_name="__main__")
+    rows = {r["reading"]: r for r in read_table(tmp_path / "e.csv")}
+    assert {r["rovers"] for r in rows.values()} == {2.0} and len(rows) == 5
+    (k1, k1_last), (k3, k3_last) = (per_seed(tmp_path / p / "runs" / "paper-2" / "maddpg") for p in seconds)
+    scores = [
+        [r["normalized_score"] for r in read_table(tmp_path / p / "runs" / "paper-2" / "maddpg" / "evaluation.csv")[2:]]
+        for p in seconds
+    ]
+    for reading, (control, treated) in {
+        "max mean episode reward": (k1, k3),
+        "last-window reward": (k1_last, k3_last),
+        "deterministic score": scores,
+        "s / 1000 episodes": seconds.values(),
+    }.items():
+        control, treated, row = np.array(control), np.array(treated), rows[reading]
+        assert (row["k1"], row["k3"]) == pytest.approx((control.mean(), treated.mean()), rel=1e-6)
+        assert row["change_pct"] == pytest.approx(100 * (treated.mean() / control.mean() - 1) * np.sign(control.mean()))
+        assert row["p"] == pytest.approx(stats.ttest_ind(treated, control, equal_var=False).pvalue, rel=1e-6)
+        assert row["ci_low"] < row["change_pct"] < row["ci_high"]
+    assert "| 2 | s / 1000 episodes | 11.00 | 42.00 |" in capsys.readouterr().out
 
 
 def test_figures_and_report(finished):
