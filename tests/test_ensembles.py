@@ -22,6 +22,8 @@ from roverswarm.cli import main
 from roverswarm.errors import RunStopped, UserError
 from roverswarm.config import validate, with_options
 from roverswarm.evaluate import evaluate_run
+from roverswarm.algos.learner import act, init_learner
+from roverswarm.env.mars import observation_size, reset
 from roverswarm.runs import Run
 from roverswarm.trainer import init_runner, run_buffer, train
 
@@ -248,23 +250,67 @@ def test_bad_ensemble_or_inference_input_is_one_line_and_exit_2(argv, message, c
     assert message in err and err.count("\n") == 1
 
 
+def _observations(params, episodes: int = 6):
+    """States and observations [E, N, O] of ``episodes`` fresh layouts."""
+    obs, states = jax.vmap(lambda k: reset(k, params))(jax.random.split(jax.random.PRNGKey(3), episodes))
+    return obs, states
+
+
 def test_other_seeds_partners_take_agent_i_from_seed_s_plus_i(ensemble_run, capsys):
-    """``--partners other-seeds``: seed s's policy runs agent i's sub-policies of seed (s + i) mod S,
-    compared with a slow loop over the actors' rows; a one-seed run is refused."""
+    """``--partners other-seeds``: in seed s's swarm agent i acts as agent i of seed (s + i) mod S,
+    every sub-policy included: compared with the actors' rows mixed by a slow loop and run
+    through the learner's own act; a one-seed run is refused."""
     config, learner = ensemble_run.config, ensemble_run.learner
+    params, k = validate(config), config.learner.ensemble
     policies = Run.of(config, learner).policies(partners="other-seeds")
     assert [p.name for p in policies] == [
         "maddpg agents of seeds 0/1, random sub-policies",
         "maddpg agents of seeds 1/0, random sub-policies",
     ]
+    obs, states = _observations(params)
+    plan = np.random.default_rng(0).integers(0, k, obs.shape[:2]).astype(np.int32)
     for s, policy in enumerate(policies):
-        for got, stored in zip(jax.tree.leaves(policy.weights), jax.tree.leaves(learner.actor)):
-            expected = np.stack(
-                [stored[(s + row // config.learner.ensemble) % config.seeds, row] for row in range(stored.shape[1])]
-            )
-            np.testing.assert_array_equal(np.asarray(got), expected)
+        mixed = jax.tree.map(
+            lambda x: np.stack([np.asarray(x)[(s + row // k) % config.seeds, row] for row in range(x.shape[1])]),
+            learner.actor,
+        )
+        got = jax.vmap(policy.act, in_axes=(None, 0, 0, 0, None, None))(
+            jax.random.PRNGKey(0), obs, states, plan, policy.weights, params
+        )
+        np.testing.assert_allclose(got, act(config.learner, mixed, obs, plan), rtol=1e-6, atol=1e-7)
     one_seed = jax.tree.map(lambda x: x[:1], learner)
     with pytest.raises(UserError, match="--partners other-seeds needs a run trained with --seeds >= 2, this one has 1"):
         Run.of(dataclasses.replace(config, seeds=1), one_seed).policies(partners="other-seeds")
     assert main(["evaluate", str(ensemble_run.out), "--episodes", "40", "--partners", "other-seeds"]) == 0
     assert "agents of seeds 1/0" in capsys.readouterr().out
+
+
+def test_other_seeds_partners_of_a_shared_network_with_normalised_observations(tiny_config):
+    """A shared actor with observation normalisation (untrained, with a different normaliser
+    per seed): rover i of seed s's mixed swarm acts as seed (s + i) mod 3's network does for
+    rover i (its id, its normaliser), by a loop over the rovers of the plain per-seed act."""
+    config = with_options(tiny_config, dict(scenario="paper-3", seeds=3, share_parameters=True, normalize_obs=True))
+    params = validate(config)
+    sizes = (params.num_rovers, observation_size(params))
+    learner = jax.vmap(lambda key: init_learner(key, config.learner, *sizes))(
+        jax.random.split(jax.random.PRNGKey(1), 3)
+    )
+    rng = np.random.default_rng(1)
+    norm = learner.obs_norm.replace(
+        mean=jnp.asarray(rng.normal(size=learner.obs_norm.mean.shape), jnp.float32),
+        var=jnp.asarray(rng.uniform(0.5, 2.0, size=learner.obs_norm.var.shape), jnp.float32),
+    )
+    learner = learner.replace(obs_norm=norm)
+    policies = Run.of(config, learner).policies(partners="other-seeds")
+    assert [p.name for p in policies] == [f"maddpg agents of seeds {s}/{(s + 1) % 3}/{(s + 2) % 3}" for s in range(3)]
+    obs, states = _observations(params)
+    pick = lambda tree, s: jax.tree.map(lambda x: x[s], tree)  # noqa: E731
+    for s, policy in enumerate(policies):
+        got = jax.vmap(policy.act, in_axes=(None, 0, 0, None, None, None))(
+            jax.random.PRNGKey(0), obs, states, None, policy.weights, params
+        )
+        for i in range(params.num_rovers):
+            seed = (s + i) % 3
+            own = act(config.learner, pick(learner.actor, seed), obs, obs_norm=pick(norm, seed))
+            np.testing.assert_allclose(got[:, i], own[:, i], rtol=1e-6, atol=1e-7)
+        assert not np.allclose(got, act(config.learner, pick(learner.actor, s), obs, obs_norm=pick(norm, s)))

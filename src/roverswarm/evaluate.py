@@ -34,7 +34,9 @@ class EvaluateConfig:
     training; `each` runs sub-policy k of all agents, for every k."""
     partners: Literal["own", "other-seeds"] = "own"
     """`own`: each seed's agents together; `other-seeds`: agent i of seed s beside the other
-    agents of seeds s + 1, s + 2, ... (mod seeds), partners it never trained with."""
+    agents of seeds s + 1, s + 2, ... (mod seeds), partners it never trained with (each rover
+    acting as its own seed's policy would in its place: shared networks and normalised
+    observations too)."""
 
 
 def evaluate_run(

@@ -236,6 +236,26 @@ def _sub_policy_plan(num_policies: int, sub_policy: int | None, seed: int) -> Pl
     return plan
 
 
+@functools.lru_cache(maxsize=None)
+def _mixed_act(act_fn: ActFn) -> ActFn:
+    # one function object per inner act function, so rollouts of every mix reuse the compiled code
+    def mixed(key, obs, state, plan, weights, params):
+        every = [act_fn(key, obs, state, plan, w, params)[..., i, :] for i, w in enumerate(weights)]
+        return jnp.stack(every, axis=-2)
+
+    return mixed
+
+
+def mixed_policy(name: str, policies: list[Policy]) -> Policy:
+    """A swarm of rovers taken from different trained policies of one config: rover i acts as
+    ``policies[i]`` would in its place, on the same observations (each with its own networks
+    and observation normaliser; a shared network with rover i's id). The policies share their
+    act function and per-episode plan (the first's plan is used)."""
+    if any(p.act is not policies[0].act for p in policies):
+        raise ValueError("mixed_policy: the policies must come from one training config")
+    return Policy(name, _mixed_act(policies[0].act), policies[0].plan, weights=tuple(p.weights for p in policies))
+
+
 def trained_policy(
     config: TrainConfig,
     actor_params,

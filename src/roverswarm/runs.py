@@ -29,7 +29,7 @@ from roverswarm.buffers.base import BufferState
 from roverswarm.config import TrainConfig, config_from_json, validate
 from roverswarm.env.mars import EnvParams, count_text, observation_size
 from roverswarm.errors import UserError, require
-from roverswarm.policies import REFERENCE_POLICIES, Policy, trained_policy
+from roverswarm.policies import REFERENCE_POLICIES, Policy, mixed_policy, trained_policy
 
 
 @struct.dataclass
@@ -321,17 +321,6 @@ def partner_seeds(seed: int, num_agents: int, seeds: int) -> np.ndarray:
     return (seed + np.arange(num_agents)) % seeds
 
 
-def seed_actor(actor, seed: int, num_agents: int, partners: Partners = "own"):
-    """The actors [N * K, ...] that seed ``seed`` of a run's actors [S, N * K, ...] plays with:
-    its own (``own``), or agent i's from seed ``(seed + i) mod S`` (``other-seeds``: partners
-    trained apart, which never saw each other during training; :func:`partner_seeds`)."""
-    if partners == "own":
-        return jax.tree.map(lambda x: x[seed], actor)
-    seeds, rows = jax.tree.leaves(actor)[0].shape[:2]  # S, N * K
-    source = partner_seeds(seed, num_agents, seeds)[np.arange(rows) // (rows // num_agents)]
-    return jax.tree.map(lambda x: x[source, np.arange(rows)], actor)
-
-
 class Run:
     """A finished or interrupted run in ``folder``: its config, metrics, networks and policies.
 
@@ -377,19 +366,22 @@ class Run:
         )
         ensemble = ", random sub-policies" if self.config.learner.ensemble > 1 else ""
         name = f"{self.config.learner.algo} ({self.folder.name}, seed {seed}{ensemble})"
-        return self._policy(seed, jax.tree.map(lambda x: x[seed], self.learner.actor), name, seed=seed)
+        return self._policy(seed, name, seed=seed)
 
-    def _policy(self, index: int, actor, name: str, sub_policy: int | None = None, **kwargs) -> Policy:
-        """Seed ``index``'s policy of ``actor`` (on that seed's observation normaliser)."""
+    def _policy(self, index: int, name: str, sub_policy: int | None = None, seed: int = 0) -> Policy:
+        """Seed ``index``'s policy (its networks and observation normaliser); with ensembles,
+        sub-policy ``sub_policy`` for every agent, or random ones drawn with ``seed``."""
+        pick = functools.partial(jax.tree.map, lambda x: x[index])
         norm = None if self.config.learner.algo in ON_POLICY else self.learner.obs_norm
-        norm = None if norm is None else jax.tree.map(lambda x: x[index], norm)
-        return trained_policy(self.config, actor, name, sub_policy, obs_norm=norm, **kwargs)
+        norm = None if norm is None else pick(norm)
+        return trained_policy(self.config, pick(self.learner.actor), name, sub_policy, seed, obs_norm=norm)
 
     def policies(self, sub_policies: SubPolicies = "random", seed: int = 0, partners: Partners = "own") -> list[Policy]:
         """Every seed's trained policy; with ensembles, a random sub-policy per agent and episode
         as in training (``random``), or every sub-policy k of all agents in turn (``each``).
-        With ``partners="other-seeds"`` every agent plays beside the other agents of other seeds
-        (:func:`seed_actor`), a test of how well a policy copes with partners it was not trained with."""
+        With ``partners="other-seeds"`` agent i of seed s's swarm is seed ``(s + i) mod S``'s
+        agent i (:func:`partner_seeds`, :func:`~roverswarm.policies.mixed_policy`): a test of how
+        well a policy copes with partners it was not trained with."""
         config = self.config
         require(sub_policies in ("random", "each"), f"--sub-policies must be 'random' or 'each', got '{sub_policies}'")
         require(partners in ("own", "other-seeds"), f"--partners must be 'own' or 'other-seeds', got '{partners}'")
@@ -397,31 +389,18 @@ class Run:
             partners == "own" or config.seeds >= 2,
             f"--partners other-seeds needs a run trained with --seeds >= 2, this one has {config.seeds}",
         )
-        require(
-            partners == "own"
-            or not (
-                config.learner.share_parameters or config.learner.normalize_obs or config.learner.algo in ON_POLICY
-            ),
-            "--partners other-seeds needs one network and no observation normaliser per agent: this "
-            "run has --share-parameters, --normalize-obs or a shared PPO actor",
-        )
-        num_agents = self.params.num_rovers
+        algo, ensemble = config.learner.algo, config.learner.ensemble
+        sub = [None] if ensemble == 1 or sub_policies == "random" else list(range(ensemble))
         policies = []
         for s in range(config.seeds):
-            actor = seed_actor(self.learner.actor, s, num_agents, partners)
-            if partners == "own":
-                name = f"{config.learner.algo} seed {s}"
-            else:
-                partners_of = "/".join(map(str, partner_seeds(s, num_agents, config.seeds)))
-                name = f"{config.learner.algo} agents of seeds {partners_of}"
-            if config.learner.ensemble == 1:
-                policies.append(self._policy(s, actor, name))
-            elif sub_policies == "random":
-                policies.append(self._policy(s, actor, f"{name}, random sub-policies", seed=seed))
-            else:
-                policies += [
-                    self._policy(s, actor, f"{name}, sub-policy {k}", k) for k in range(config.learner.ensemble)
-                ]
+            sources = partner_seeds(s, self.params.num_rovers, config.seeds) if partners == "other-seeds" else None
+            name = f"{algo} seed {s}" if sources is None else f"{algo} agents of seeds {'/'.join(map(str, sources))}"
+            for k in sub:
+                full = name + ("" if ensemble == 1 else ", random sub-policies" if k is None else f", sub-policy {k}")
+                if sources is None:
+                    policies.append(self._policy(s, full, k, seed))
+                else:
+                    policies.append(mixed_policy(full, [self._policy(int(i), full, k, seed) for i in sources]))
         return policies
 
 
