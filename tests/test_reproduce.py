@@ -22,7 +22,7 @@ from roverswarm.experiments.grid import plan
 from roverswarm.cli import main
 from roverswarm.errors import RunStopped, UserError
 from roverswarm.experiments import ReproduceConfig, reproduce
-from roverswarm.experiments.paper import PAPER_TABLE1, paired_change, paired_p, relative_change
+from roverswarm.experiments.paper import PAPER_TABLE1, holm, paired_change, paired_p, relative_change
 from roverswarm.config import MAPPO, PRESETS, config_from_json, with_options
 from roverswarm.runs import write_csv
 
@@ -135,6 +135,9 @@ def test_two_optimizer_variants_against_one_maddpg_arm(base, finished, tmp_path,
     assert [(int(r["rovers"]), r["arm"]) for r in table] == [
         (n, f"MADDPG + optimizer ({name})") for name in arms for n in (2, 3)
     ]
+    holm_p = [r["reward_p_holm"] for r in table]  # one family: both variants at both sizes
+    for level in (0.01, 0.05, 0.2, 0.5, 0.9):
+        assert {i for i, a in enumerate(holm_p) if a <= level} == holm_rejects([r["reward_p"] for r in table], level)
     report = (tmp_path / "report.md").read_text()
     for name, options in arms.items():
         pooled = []
@@ -367,6 +370,32 @@ def test_the_paired_change_interval_covers_the_truth_95_percent_of_the_time():
         _, low, high, _ = paired_change(treated, control)
         hits += low <= 10.0 <= high
     assert 0.92 <= hits / trials <= 0.985
+
+
+def holm_rejects(p_values: list[float], level: float) -> set[int]:
+    """Holm's procedure as he states it, slowly: go through the hypotheses from the smallest p;
+    reject the j-th (counting from 1) while its p <= level / (m - j + 1); stop at the first that is not."""
+    tested = sorted((p, i) for i, p in enumerate(p_values) if np.isfinite(p))
+    rejected = set()
+    for j, (p, i) in enumerate(tested, start=1):
+        if p > level / (len(tested) - j + 1):
+            break
+        rejected.add(i)
+    return rejected
+
+
+def test_holm_adjusted_p_values_reject_what_holms_procedure_rejects():
+    assert holm([0.01, 0.04, 0.03, float("nan")])[:3] == pytest.approx([0.03, 0.06, 0.06])
+    assert np.isnan(holm([0.01, float("nan")])[1]) and holm([]).shape == (0,)
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        p = rng.uniform(0, 0.2, rng.integers(1, 9)) ** rng.uniform(0.5, 3)
+        p[rng.random(len(p)) < 0.15] = np.nan
+        p[rng.random(len(p)) < 0.15] = p[0]  # ties
+        adjusted = holm(p)
+        assert np.array_equal(np.isnan(adjusted), np.isnan(p)) and np.all(adjusted[~np.isnan(p)] >= p[~np.isnan(p)])
+        for level in (0.001, 0.01, 0.05, 0.1, 0.3):
+            assert {i for i, a in enumerate(adjusted) if a <= level} == holm_rejects(list(p), level)
 
 
 def test_the_paired_p_value_matches_scipy_and_is_defined_without_spread():

@@ -222,6 +222,19 @@ def pooled_change(pairs: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float, fl
     return mean, mean - half, mean + half, paired_p(pooled)
 
 
+def holm(p_values) -> np.ndarray:
+    """Holm's step-down adjustment of ``p_values``, taken as one family (NaN entries are left
+    out of it and stay NaN): each hypothesis's smallest family-wise error rate at which the
+    procedure rejects it, ``max_{j <= i} min(1, (m - j + 1) p_(j))`` for the i-th smallest."""
+    p = np.asarray(p_values, float)
+    adjusted = np.full(p.shape, np.nan)
+    tested = np.flatnonzero(np.isfinite(p))
+    order = tested[np.argsort(p[tested], kind="stable")]
+    scaled = np.minimum(1.0, (len(order) - np.arange(len(order))) * p[order])
+    adjusted[order] = np.maximum.accumulate(scaled) if len(order) else scaled
+    return adjusted
+
+
 TABLE1_COLUMNS = [
     "rovers",
     "arm",
@@ -230,6 +243,7 @@ TABLE1_COLUMNS = [
     "reward_ci_low",
     "reward_ci_high",
     "reward_p",
+    "reward_p_holm",
     "last_change_pct",
     "last_ci_low",
     "last_ci_high",
@@ -259,7 +273,8 @@ def optimizer_pairs(results: list[RunResult]) -> list[tuple[int, RunResult, RunR
 def table1(results: list[RunResult]) -> list[dict[str, object]]:
     """One row per N and optimizer arm: Table I (maximum and last-window reward, paired; time)
     against the arm's plain learner, with intervals, p-values and the paper's values (for
-    MADDPG + optimizer only: the paper's Table I compares it with MADDPG)."""
+    MADDPG + optimizer only: the paper's Table I compares it with MADDPG). ``reward_p_holm``
+    adjusts the maximum-reward p-values for the table's many comparisons (:func:`holm`)."""
     rows = []
     for n, optimized, plain in optimizer_pairs(results):
         reward = paired_change(optimized.best, plain.best)
@@ -271,8 +286,10 @@ def table1(results: list[RunResult]) -> list[dict[str, object]]:
         papers = PAPER_TABLE1 if plain.run.algorithm == "maddpg" else {}
         paper = papers.get(n, (float("nan"), float("nan")))
         arms = (label(optimized.run.algorithm), label(plain.run.algorithm))
-        values = (n, *arms, *reward, *last, paper[0], *seconds, paper[1])
+        values = (n, *arms, *reward, float("nan"), *last, paper[0], *seconds, paper[1])
         rows.append(dict(zip(TABLE1_COLUMNS, values)))
+    for row, adjusted in zip(rows, holm([r["reward_p"] for r in rows])):  # every arm and N: one family
+        row["reward_p_holm"] = float(adjusted)
     return rows
 
 
@@ -304,7 +321,7 @@ def table1_markdown(rows: list[dict[str, object]]) -> str:
         "N",
         "optimizer arm",
         "against",
-        "max reward change (ours) | 95% CI | p",
+        "max reward change (ours) | 95% CI | p | p, Holm",
         "last-window reward change | 95% CI | p",
     ]
     header += ["paper", "time per 1000 episodes change (ours) | 95% CI | p", "paper"]
@@ -313,7 +330,7 @@ def table1_markdown(rows: list[dict[str, object]]) -> str:
             str(r["rovers"]),
             str(r["arm"]),
             str(r["against"]),
-            change(r, "reward"),
+            f"{change(r, 'reward')} | {r['reward_p_holm']:.3g}",
             change(r, "last"),
             _fmt(r["paper_reward_change_pct"], suffix="%"),
             change(r, "time"),
@@ -407,6 +424,7 @@ def figure9(results: list[RunResult], path: Path) -> None:
 def verdicts(results: list[RunResult], rows: list[dict[str, object]]) -> list[str]:
     """Plain statements of whether the numbers support the paper's two claims."""
     lines = []
+    family = sum(1 for r in rows if np.isfinite(r["reward_p"]))
     for arm in dict.fromkeys(r["arm"] for r in rows):
         mine = [r for r in rows if r["arm"] == arm]
         aside = "" if mine[0]["against"] == LABELS["maddpg"] else " (not a claim of the paper)"
@@ -416,7 +434,8 @@ def verdicts(results: list[RunResult], rows: list[dict[str, object]]) -> list[st
         sizes = [r["rovers"] for r in mine]
         changes = [r["reward_change_pct"] for r in mine]
         slope = float(np.polyfit(sizes, changes, 1)[0])
-        significant = sum(1 for r in mine if r["reward_p"] < 0.05 and r["reward_change_pct"] > 0)
+        gains = [r for r in mine if r["reward_change_pct"] > 0]
+        significant = sum(1 for r in gains if r["reward_p_holm"] < 0.05)
         grows = slope > 0 and changes[-1] > 0
         lines.append(
             f"- *{arm} helps more as N grows*{aside}: "
@@ -424,7 +443,8 @@ def verdicts(results: list[RunResult], rows: list[dict[str, object]]) -> list[st
             f"Its maximum-reward change against {mine[0]['against']} goes "
             f"{', '.join(f'{c:+.1f}%' for c in changes)} for "
             f"N = {', '.join(map(str, sizes))} (trend {slope:+.2f} points per rover); {significant} of {len(mine)} "
-            "changes are positive with p < 0.05 (paired over seeds)."
+            f"changes are positive with p < 0.05 (paired over seeds) after Holm's correction for the "
+            f"{family} comparisons of Table I ({sum(1 for r in gains if r['reward_p'] < 0.05)} before it)."
         )
     if not rows:
         lines.append(
@@ -569,7 +589,9 @@ counted); training time recorded in the runs' metrics (all runs, all chunks, whi
 {table1_markdown(rows)}
 Relative changes of the means, `100 * (optimizer - plain) / |plain|`. Rewards: per seed, the maximum mean
 episode reward and the mean over the last {LAST_WINDOW} episodes (training rows, noise on), compared paired
-over the seeds the arms share (delta-method 95% intervals, paired t-test p-values).
+over the seeds the arms share (delta-method 95% intervals, paired t-test p-values). `p, Holm`: the
+max-reward p-value adjusted by Holm's step-down method for all {len(rows)} rows of the table, one family
+(the verdicts below count it).
 {time_note}
 
 Pooled across N (every seed's relative difference, one-sample t-test):
