@@ -231,7 +231,7 @@ def holm(p_values) -> np.ndarray:
     tested = np.flatnonzero(np.isfinite(p))
     order = tested[np.argsort(p[tested], kind="stable")]
     scaled = np.minimum(1.0, (len(order) - np.arange(len(order))) * p[order])
-    adjusted[order] = np.maximum.accumulate(scaled) if len(order) else scaled
+    adjusted[order] = np.maximum.accumulate(scaled)
     return adjusted
 
 
