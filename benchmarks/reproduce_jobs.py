@@ -18,7 +18,7 @@ import sys
 import tempfile
 import time
 
-from roverswarm.experiments.grid import usable_cpus
+from roverswarm.experiments.arms import usable_cpus
 
 
 def timed(jobs: int, scenarios: list[str], episodes: int) -> float:

@@ -55,8 +55,7 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 
-from roverswarm import onpolicy
-from roverswarm.algos.learner import ON_POLICY, init_learner
+from roverswarm.algos.learner import init_learner
 from roverswarm.algos.maddpg import update
 from roverswarm.buffers.base import Transition
 from roverswarm.buffers import compact
@@ -64,7 +63,8 @@ from roverswarm.env.mars import ACTION_SIZE, observation_size
 from roverswarm.experiments.timing import chunk_seconds, fill, paired_ratio
 from roverswarm.jaxcache import enable_compilation_cache
 from roverswarm.config import PRESETS, TrainConfig, validate, with_options
-from roverswarm.trainer import run_buffer
+from roverswarm.learners import FAMILIES, onpolicy
+from roverswarm.learners.offpolicy import run_buffer
 
 REFERENCE_SECONDS_N3 = 90.0
 
@@ -154,7 +154,7 @@ def main() -> None:
     parser.add_argument("--rovers", type=int, nargs="+", default=[2, 3, 4, 5], help="swarm sizes N to measure")
     parser.add_argument("--chunks", type=int, default=3, help="timed chunks per configuration")
     parser.add_argument("--only", choices=["main", "extensions", "ppo"], help="print one of the three tables")
-    replay_presets = [name for name, preset in PRESETS.items() if preset.learner.algo not in ON_POLICY]
+    replay_presets = [name for name, preset in PRESETS.items() if FAMILIES[preset.learner.algo].replay]
     parser.add_argument(
         "--preset", choices=replay_presets, nargs="+", default=replay_presets, help="presets of the main table"
     )
@@ -223,16 +223,17 @@ def ppo_table(rover_counts: tuple[int, ...], chunks: int) -> None:
     print("\n| N | algo | s/1000 ep | env steps/s | rollouts | GAE and updates |")
     print("|---|---|---|---|---|---|")
     for n in rover_counts:
-        for algo in ON_POLICY:
+        for algo in [name for name, family in FAMILIES.items() if not family.replay]:
             config = with_options(PRESETS[algo], dict(scenario=f"paper-{n}"))
             params = validate(config)
-            runner = onpolicy.init_runner(config, params)
-            runner, metrics = onpolicy.run_chunk(config, params, runner)  # compile
+            program, total = onpolicy.configure(config, params), jnp.int32(config.episodes)
+            runner = onpolicy.init(program, params, config.seed)
+            runner, metrics = onpolicy.run_chunk(program, params, runner, total)  # compile
             jax.block_until_ready(metrics)
             spent = []
             for _ in range(chunks):
                 start = time.perf_counter()
-                runner, metrics = onpolicy.run_chunk(config, params, runner)
+                runner, metrics = onpolicy.run_chunk(program, params, runner, total)
                 jax.block_until_ready(metrics)
                 spent.append(time.perf_counter() - start)
             chunk = statistics.median(spent)

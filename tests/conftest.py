@@ -76,21 +76,27 @@ def tiny_ppo_config():
 def signal_at_chunk(monkeypatch):
     """``arm(signum, chunk)`` makes the next training send ``signum`` to this process just
     before its chunk number ``chunk`` (as Ctrl-C or a scheduler would); it returns a function
-    that restores the trainer."""
-    import roverswarm.trainer as trainer
+    that restores the trainer (every learner family's chunk)."""
+    import dataclasses
 
-    real = trainer.run_chunk
+    from roverswarm.learners import FAMILIES
+
+    real = dict(FAMILIES)
 
     def arm(signum: int = signal.SIGINT, chunk: int = 2):
         calls = []
 
-        def signalled(*args):
-            calls.append(1)
-            if len(calls) == chunk:
-                os.kill(os.getpid(), signum)
-            return real(*args)
+        def signalled(run_chunk):
+            def run(*args):
+                calls.append(1)
+                if len(calls) == chunk:
+                    os.kill(os.getpid(), signum)
+                return run_chunk(*args)
 
-        monkeypatch.setattr(trainer, "run_chunk", signalled)
-        return lambda: monkeypatch.setattr(trainer, "run_chunk", real)
+            return run
+
+        for algo, family in real.items():
+            monkeypatch.setitem(FAMILIES, algo, dataclasses.replace(family, run_chunk=signalled(family.run_chunk)))
+        return lambda: FAMILIES.update(real)
 
     return arm

@@ -25,7 +25,8 @@ from roverswarm.evaluate import evaluate_run
 from roverswarm.algos.learner import act, init_learner
 from roverswarm.env.mars import observation_size, reset
 from roverswarm.runs import Run
-from roverswarm.trainer import init_runner, run_buffer, train
+from roverswarm.learners import offpolicy
+from roverswarm.trainer import train
 
 K = 3  # sub-policies per agent: with test_ranked's N = 2 agents, G = 6 sampling groups
 DRAWS = 300
@@ -165,7 +166,7 @@ def test_every_sub_policy_learns(ensemble_run):
     from its own partition), and by different amounts (they learn apart)."""
     config = ensemble_run.config
     params = validate(config)
-    start = init_runner(config, params, run_buffer(config, params)).learner.actor
+    start = offpolicy.init(offpolicy.configure(config, params), params, config.seed).learner.actor
     moved = np.max(
         [
             np.abs(a - b).max(axis=tuple(range(2, a.ndim)))

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from roverswarm import onpolicy
+from roverswarm.learners import onpolicy
 from roverswarm.algos import ppo
 from roverswarm.algos.normalize import init_obs_norm, update_obs_norm
 from roverswarm.config import MAPPO, TrainConfig, validate, with_options
@@ -19,7 +19,8 @@ from roverswarm.env.scenarios import get_scenario
 from roverswarm.errors import UserError
 from roverswarm.rollout import normalized_score, rollout
 from roverswarm.policies import ORACLE, RANDOM
-from roverswarm.runs import PPO_METRICS, Run
+from roverswarm.learners.onpolicy import PPO_METRICS
+from roverswarm.runs import Run
 from roverswarm.trainer import train
 
 TIMELESS = lambda rows: [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rows]  # noqa: E731

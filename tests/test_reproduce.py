@@ -17,12 +17,13 @@ import numpy as np
 import pytest
 from scipy import stats
 
-import roverswarm.experiments.grid as grid_module
-from roverswarm.experiments.grid import plan
+import roverswarm.experiments.pool as pool_module
+from roverswarm.experiments.arms import plan
 from roverswarm.cli import main
 from roverswarm.errors import RunStopped, UserError
 from roverswarm.experiments import ReproduceConfig, reproduce
-from roverswarm.experiments.paper import PAPER_TABLE1, holm, paired_change, paired_p, relative_change
+from roverswarm.experiments.results import PAPER_TABLE1
+from roverswarm.experiments.significance import holm, paired_change, paired_p, relative_change
 from roverswarm.config import MAPPO, PRESETS, config_from_json, with_options
 from roverswarm.runs import write_csv
 
@@ -235,7 +236,7 @@ def test_figures_and_report(finished):
 
 
 def test_an_interrupted_grid_finishes_only_the_missing_runs(base, finished, tmp_path, monkeypatch):
-    real = grid_module.train
+    real = pool_module.train
     calls = []
 
     def stops_after_two(config, out, **kwargs):
@@ -244,13 +245,13 @@ def test_an_interrupted_grid_finishes_only_the_missing_runs(base, finished, tmp_
             raise RunStopped("interrupted")
         return real(config, out, **kwargs)
 
-    monkeypatch.setattr(grid_module, "train", stops_after_two)
+    monkeypatch.setattr(pool_module, "train", stops_after_two)
     small = tiny_grid(tmp_path, scenarios=("paper-2",))
     with pytest.raises(RunStopped):
         reproduce(small, base, live=False)
     calls.clear()
     monkeypatch.setattr(
-        grid_module, "train", lambda config, out, **kw: calls.append(Path(out)) or real(config, out, **kw)
+        pool_module, "train", lambda config, out, **kw: calls.append(Path(out)) or real(config, out, **kw)
     )
     reproduce(small, base, live=False)
     assert calls == [tmp_path / "runs" / "paper-2" / "maddpg-optimizer"]
@@ -477,10 +478,10 @@ def test_ray_backend_retries_a_killed_worker_and_matches_the_local_backend(base,
     assert (tmp_path / "report.md").exists()
 
 
-@pytest.mark.skipif(len(grid_module.usable_cpus()) < 2, reason="needs 2 CPUs")
+@pytest.mark.skipif(len(pool_module.usable_cpus()) < 2, reason="needs 2 CPUs")
 def test_jobs_train_runs_side_by_side_to_the_numbers_of_one_process(base, finished, tmp_path, capsys):
     grid = tiny_grid(tmp_path, scenarios=("paper-2",), jobs=2)
-    assert [len(share) for share in grid_module.cpu_shares(2)] == [1, 1]
+    assert [len(share) for share in pool_module.cpu_shares(2)] == [1, 1]
     # a driver process, stopped by SIGTERM once both runs have written rows: each run keeps a checkpoint
     driver = multiprocessing.get_context("spawn").Process(target=reproduce, args=(grid, base), kwargs={"live": False})
     driver.start()
@@ -497,14 +498,14 @@ def test_jobs_train_runs_side_by_side_to_the_numbers_of_one_process(base, finish
             seed_rows(root / "runs" / "paper-2" / algorithm / "metrics.csv") for root in (tmp_path, finished)
         )
         assert timeless(ours) == timeless(theirs)
-    for jobs in (0, len(grid_module.usable_cpus()) + 1):
+    for jobs in (0, len(pool_module.usable_cpus()) + 1):
         assert main(["reproduce", "--out", str(tmp_path), "--jobs", str(jobs)]) == 2
-        assert f"--jobs must be in [1, {len(grid_module.usable_cpus())}]" in capsys.readouterr().err
+        assert f"--jobs must be in [1, {len(pool_module.usable_cpus())}]" in capsys.readouterr().err
     assert main(["reproduce", "--out", str(tmp_path), "--jobs", "1", "--backend", "ray"]) == 2
     assert "--jobs is for --backend local" in capsys.readouterr().err
 
 
-@pytest.mark.skipif(len(grid_module.usable_cpus()) < 2, reason="needs 2 CPUs")
+@pytest.mark.skipif(len(pool_module.usable_cpus()) < 2, reason="needs 2 CPUs")
 def test_a_failed_job_is_reported_with_its_own_error(base, tmp_path):
     """Both jobs fail at once (each folder held by a live writer): the error reported is the
     failed run's own, not whichever job's error reached the queue first."""
@@ -513,19 +514,19 @@ def test_a_failed_job_is_reported_with_its_own_error(base, tmp_path):
         run.folder.mkdir(parents=True)
         (run.folder / ".lock").write_text(f"{os.getpid()} {socket.gethostname()}")  # this test: alive
     with pytest.raises(RunStopped) as stopped:
-        grid_module.run_jobs(runs, grid_module.Summary(runs, set()), jobs=2)
+        pool_module.run_jobs(runs, pool_module.Summary(runs, set()), jobs=2)
     name = str(stopped.value).split("'")[1]
     folder = next(run.folder for run in runs if run.name == name)
     assert f"'{folder}' is being written by process {os.getpid()}" in str(stopped.value)
 
 
 def test_default_jobs_follow_run_length_cpus_and_memory(base, tmp_path, monkeypatch):
-    long = grid_module.plan(tiny_grid(tmp_path, episodes=60_000), base)  # 6 runs, planned only
-    short = grid_module.plan(tiny_grid(tmp_path), base)
-    cpus = len(grid_module.usable_cpus())
-    assert grid_module.default_jobs(short) == 1  # start-up and compilation dominate short runs
-    assert grid_module.default_jobs(long) == min(6, cpus)
-    assert grid_module.default_jobs(long[:1]) == 1
-    need = max(grid_module.run_memory(run.config) for run in long)
-    monkeypatch.setattr(grid_module, "physical_memory", lambda: int(need / 0.8) + 1)  # room for one run only
-    assert grid_module.default_jobs(long) == 1
+    long = plan(tiny_grid(tmp_path, episodes=60_000), base)  # 6 runs, planned only
+    short = plan(tiny_grid(tmp_path), base)
+    cpus = len(pool_module.usable_cpus())
+    assert pool_module.default_jobs(short) == 1  # start-up and compilation dominate short runs
+    assert pool_module.default_jobs(long) == min(6, cpus)
+    assert pool_module.default_jobs(long[:1]) == 1
+    need = max(pool_module.run_memory(run.config) for run in long)
+    monkeypatch.setattr(pool_module, "physical_memory", lambda: int(need / 0.8) + 1)  # room for one run only
+    assert pool_module.default_jobs(long) == 1

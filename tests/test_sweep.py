@@ -16,7 +16,7 @@ from roverswarm.cli import main
 from roverswarm.config import with_options
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
-from roverswarm.experiments.grid import usable_cpus
+from roverswarm.experiments.arms import usable_cpus
 from roverswarm.experiments.sweep import SweepConfig, gapped, load_sweep, read_table, sweep
 from roverswarm.rollout import rollout
 from roverswarm.runs import Run, write_csv
@@ -87,10 +87,10 @@ def test_render_draws_a_trained_run_in_its_own_environment(finished, setting, tm
 
 
 def test_a_rerun_keeps_finished_runs(finished, monkeypatch):
-    import roverswarm.experiments.grid as grid_module
+    import roverswarm.experiments.pool as pool_module
 
     config, _ = finished
-    monkeypatch.setattr(grid_module, "train", lambda *a, **k: pytest.fail("a finished run was trained again"))
+    monkeypatch.setattr(pool_module, "train", lambda *a, **k: pytest.fail("a finished run was trained again"))
     sweep(config, live=False)
 
 
@@ -99,9 +99,9 @@ def test_jobs_train_a_sweep_side_by_side_to_the_numbers_of_one_process(finished,
     """Two settings of the fixture's sweep (trained one after another in this process) again
     with --jobs 2, each run in its own process: the same metrics, wall time aside, and the same
     table."""
-    import roverswarm.experiments.grid as grid_module
+    import roverswarm.experiments.pool as pool_module
 
-    monkeypatch.setattr(grid_module, "run_local", lambda *a, **k: pytest.fail("a run trained in this process"))
+    monkeypatch.setattr(pool_module, "run_local", lambda *a, **k: pytest.fail("a run trained in this process"))
     config, _ = finished
     spec = yaml.safe_load(config.file.read_text())
     spec["settings"] = {k: v for k, v in spec["settings"].items() if k != "mappo"}

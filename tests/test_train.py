@@ -24,8 +24,9 @@ from roverswarm.evaluate import evaluate_run
 from roverswarm.config import REFERENCE, SWARM, TrainConfig, config_from_json, validate, with_options
 from roverswarm.runs import CHECKPOINT, LOCK, METRICS, Run, atomic_write, read_metrics
 import roverswarm.trainer as trainer_module
-from roverswarm.buffers import make_buffer
-from roverswarm.trainer import checkpoint_due, run_buffer, train
+from roverswarm.learners import FAMILIES, offpolicy
+from roverswarm.learners.offpolicy import run_buffer
+from roverswarm.trainer import checkpoint_due, train
 
 TIMELESS = lambda rows: [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rows]  # noqa: E731
 
@@ -192,19 +193,17 @@ def test_checkpoint_minutes_save_mid_run_without_changing_the_numbers(unbroken, 
 
 
 def test_non_finite_losses_stop_the_run_and_keep_the_last_good_checkpoint(tiny_config, tmp_path, monkeypatch):
-    import roverswarm.trainer as train_module
-
-    real = train_module.run_chunk
+    real = offpolicy.run_chunk
     calls = []
 
-    def poisoned(config, params, buffer, runner):
-        runner, metrics = real(config, params, buffer, runner)
+    def poisoned(config, params, runner, total):
+        runner, metrics = real(config, params, runner, total)
         calls.append(1)
         if len(calls) == 3:
             metrics = {**metrics, "critic_loss": metrics["critic_loss"] * np.nan}
         return runner, metrics
 
-    monkeypatch.setattr(train_module, "run_chunk", poisoned)
+    monkeypatch.setitem(FAMILIES, "maddpg", dataclasses.replace(FAMILIES["maddpg"], run_chunk=poisoned))
     out = tmp_path / "diverged"
     with pytest.raises(RunStopped, match="non-finite loss or reward at episode 300.*last good checkpoint"):
         train(tiny_config, out=out, progress=False)
@@ -340,9 +339,7 @@ def test_a_replay_capped_at_the_runs_own_transitions_gives_the_numbers_of_the_fu
     params = validate(config)
     assert run_buffer(config, params).capacity == 200 * params.max_steps  # not 50,000
     capped = train(config, progress=False)
-    monkeypatch.setattr(
-        trainer_module, "run_buffer", lambda c, p: make_buffer(c.buffer, p.num_rovers, c.learner.ensemble)
-    )
+    monkeypatch.setattr(offpolicy, "run_replay", lambda c, p: c.buffer)
     full = train(config, progress=False)
     assert TIMELESS(capped.metrics) == TIMELESS(full.metrics)
 
@@ -449,7 +446,7 @@ def test_trap_shaping_trains_on_a_heavier_trap_penalty_and_reports_the_environme
     """--trap-shaping k: the rewards the learner keeps are those of the same environment with
     the trap penalty 1 + k (the environment's own reward formula), step by step; the episode
     rewards it reports are those of the unshaped environment."""
-    import roverswarm.onpolicy as onpolicy
+    import roverswarm.learners.onpolicy as onpolicy
     from roverswarm.algos import ppo
     from roverswarm.algos.learner import init_learner
     from roverswarm.env import observation_size
@@ -461,7 +458,7 @@ def test_trap_shaping_trains_on_a_heavier_trap_penalty_and_reports_the_environme
     sizes = (params.num_rovers, observation_size(params))
     if algo == "maddpg":
         learner = init_learner(jax.random.PRNGKey(0), config.learner, *sizes)
-        run = lambda c, p: trainer_module.collect(c, p, learner, jax.random.PRNGKey(1), 0.3)  # noqa: E731
+        run = lambda c, p: offpolicy.collect(c, p, learner, jax.random.PRNGKey(1), 0.3)  # noqa: E731
     else:
         actor = ppo.init_ppo(jax.random.PRNGKey(0), config, *sizes).actor
         run = lambda c, p: onpolicy.collect(c, p, actor, jax.random.PRNGKey(1))  # noqa: E731

@@ -15,13 +15,16 @@ from pathlib import Path
 
 import tyro
 
-from roverswarm.algos.learner import ALGOS, ON_POLICY, AlgoConfig
+from roverswarm.algos.learner import AlgoConfig
 from roverswarm.algos.ppo import PPOConfig
 from roverswarm.buffers.base import ReplayConfig
 from roverswarm.env.mars import EnvParams
 from roverswarm.env.missions import load_mission, parse_mission_text, read_mission_text
 from roverswarm.env.scenarios import get_scenario
 from roverswarm.errors import UserError, require
+from roverswarm.errors import require_finite as _finite
+from roverswarm.errors import require_positive as _positive
+from roverswarm.learners import ALGOS, FAMILY_OPTIONS, learner_family
 
 DEFAULT_SCENARIO = "paper-3"
 
@@ -127,41 +130,17 @@ PRESETS: dict[str, TrainConfig] = {
 """Named starting points of `roverswarm train --preset`; other options change them."""
 
 
-def _positive(config, names: tuple[str, ...]) -> None:
-    for name in names:
-        value = getattr(config, name)
-        require(value >= 1, f"--{name.replace('_', '-')} must be >= 1, got {value}")
-
-
-def _finite(value: float, low: float, what: str, strict: bool = False) -> None:
-    ok = math.isfinite(value) and (value > low if strict else value >= low)
-    require(ok, f"--{what} must be a finite number {'>' if strict else '>='} {low}, got {value}")
-
-
-_PPO_USES = {"algo", "actor_lr", "critic_lr", "gamma", "grad_clip", "hidden", "trap_shaping"}
-"""The learner options PPO reads; the other ones are MADDPG's."""
-_OFF_POLICY_RUN = ("update_every", "warmup", "noise_std", "noise_final", "noise_decay_episodes")
-"""The run options of learning from a replay with exploration noise."""
-
-
 def _algo_options(config: TrainConfig) -> None:
-    """Options of the other kind of learner must stay at their defaults: the replay,
-    exploration noise and MADDPG options with --algo mappo/ippo, the PPO options otherwise."""
-    defaults = TrainConfig()
-    if config.learner.algo in ON_POLICY:
-        maddpg_only = [f.name for f in dataclasses.fields(AlgoConfig) if f.name not in _PPO_USES]
-        groups = [(config, defaults, _OFF_POLICY_RUN), (config.learner, defaults.learner, maddpg_only)]
-        groups.append((config.buffer, defaults.buffer, [f.name for f in dataclasses.fields(ReplayConfig)]))
-        kind = f"--algo {config.learner.algo} learns on-policy (start from --preset {config.learner.algo})"
-    else:
-        groups = [(config.ppo, defaults.ppo, [f.name for f in dataclasses.fields(PPOConfig)])]
-        kind = f"it is a PPO option (--algo mappo or ippo), and this run is --algo {config.learner.algo}"
-    for given, default, names in groups:
-        for name in names:
-            value = getattr(given, name)
+    """Options of another learner family must stay at their defaults: the replay, exploration
+    noise and MADDPG options with --algo mappo/ippo, the PPO options otherwise."""
+    family = learner_family(config.learner.algo)
+    defaults = fields_by_name(TrainConfig())
+    for name, value in fields_by_name(config).items():
+        if name in FAMILY_OPTIONS and name not in family.options:
             require(
-                value == getattr(default, name),
-                f"--{name.replace('_', '-')} {value} does not apply: {kind}; leave it at {getattr(default, name)}",
+                value == defaults[name],
+                f"--{name.replace('_', '-')} {value} does not apply: {family.misfit.format(algo=config.learner.algo)}; "
+                f"leave it at {defaults[name]}",
             )
 
 
@@ -275,28 +254,8 @@ def validate(config: TrainConfig) -> EnvParams:
     for name in ("noise_std", "noise_final", "noise_decay_episodes"):
         value = getattr(config, name)
         require(value >= 0, f"--{name.replace('_', '-')} must be >= 0, got {value}")
-    if learner.algo in ON_POLICY:
-        _ppo_ranges(config, params)
+    learner_family(learner.algo).check(config, params)
     return params
-
-
-def _ppo_ranges(config: TrainConfig, params: EnvParams) -> None:
-    ppo = config.ppo
-    _positive(ppo, ("epochs", "minibatches"))
-    samples = params.max_steps * config.num_envs * params.num_rovers
-    require(
-        samples % ppo.minibatches == 0,
-        f"--minibatches ({ppo.minibatches}) must divide the samples per iteration "
-        f"(episode length x --num-envs x rovers = {samples})",
-    )
-    _finite(ppo.clip_eps, 0, "clip-eps", strict=True)
-    if ppo.value_clip is not None:
-        _finite(ppo.value_clip, 0, "value-clip", strict=True)
-    require(0 <= ppo.gae_lambda <= 1, f"--gae-lambda must be in [0, 1], got {ppo.gae_lambda}")
-    for name in ("ent_coef", "vf_coef"):
-        _finite(getattr(ppo, name), 0, name.replace("_", "-"))
-    require(ppo.anneal_episodes >= 0, f"--anneal-episodes must be >= 0, got {ppo.anneal_episodes}")
-    require(ppo.activation in ("tanh", "relu"), f"--activation must be 'tanh' or 'relu', got '{ppo.activation}'")
 
 
 # ----------------------------------------------------------------------------- options and JSON

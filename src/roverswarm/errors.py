@@ -7,6 +7,8 @@ anything else is a bug and keeps its traceback.
 
 from __future__ import annotations
 
+import math
+
 
 class UserError(ValueError):
     """A mistake in the user's input. The message names the field, the value, and what is allowed."""
@@ -20,3 +22,16 @@ def require(condition: bool, message: str) -> None:
 
 class RunStopped(RuntimeError):
     """A run stopped before its end (diverged, or interrupted); the message says what was kept."""
+
+
+def require_positive(config, names: tuple[str, ...]) -> None:
+    """Every field ``names`` of ``config`` is >= 1; else :class:`UserError` naming its option."""
+    for name in names:
+        value = getattr(config, name)
+        require(value >= 1, f"--{name.replace('_', '-')} must be >= 1, got {value}")
+
+
+def require_finite(value: float, low: float, what: str, strict: bool = False) -> None:
+    """``value`` is finite and >= ``low`` (> with ``strict``); else :class:`UserError` naming option ``what``."""
+    ok = math.isfinite(value) and (value > low if strict else value >= low)
+    require(ok, f"--{what} must be a finite number {'>' if strict else '>='} {low}, got {value}")

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, Hashable
 
 import jax
 import jax.numpy as jnp
@@ -31,11 +31,9 @@ import numpy as np
 from flax import struct
 from scipy.optimize import linear_sum_assignment
 
-from roverswarm.algos.learner import ON_POLICY, AlgoConfig, act
 from roverswarm.algos.normalize import ObsNorm
-from roverswarm.algos.ppo import PPOConfig
-from roverswarm.algos.ppo import act as ppo_act
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, EnvState, observe, other_rovers, trap_radii
+from roverswarm.learners import learner_family
 
 if TYPE_CHECKING:
     from roverswarm.config import TrainConfig
@@ -210,15 +208,12 @@ REFERENCE_POLICIES: dict[str, Policy] = {p.name: p for p in (RANDOM, ORACLE)}
 
 
 @functools.lru_cache(maxsize=None)
-def _trained_act(learner: AlgoConfig, ppo: PPOConfig | None, nearest_first: bool) -> ActFn:
+def _trained_act(act: Callable, acting: Hashable, nearest_first: bool) -> ActFn:
     # one function object per learner config, so rollouts of new weights reuse the compiled code
     def act_fn(key, obs, state, plan, weights, params):
         if params.nearest_first != nearest_first:  # an environment showing another view than training's
             obs = observe(state, params.replace(nearest_first=nearest_first))
-        actor, obs_norm = weights
-        if ppo is not None:
-            return ppo_act(learner, ppo, actor, obs)
-        return act(learner, actor, obs, plan, obs_norm)  # plan: with ensembles, every agent's sub-policy [N]
+        return act(acting, weights, obs, plan)  # plan: with ensembles, every agent's sub-policy [N]
 
     return act_fn
 
@@ -271,7 +266,8 @@ def trained_policy(
     if None, one drawn per episode as in training (by a generator seeded with ``seed``)."""
     learner = config.learner
     weights = (actor_params, obs_norm)
-    act_fn = _trained_act(learner, config.ppo if learner.algo in ON_POLICY else None, config.nearest_first)
+    family = learner_family(learner.algo)
+    act_fn = _trained_act(family.act, family.acting(config), config.nearest_first)
     if learner.ensemble == 1:
         return Policy(name, act_fn, weights=weights)
     return Policy(name, act_fn, _sub_policy_plan(learner.ensemble, sub_policy, seed), weights=weights)

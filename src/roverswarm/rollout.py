@@ -1,16 +1,11 @@
-"""Episodes of a policy and their statistics: one definition of every metric, shared by the
-trainer (episodes with exploration noise) and evaluation (deterministic episodes).
+"""Episodes of a policy and their statistics, for evaluation and missions (deterministic
+episodes); the totals are :mod:`roverswarm.metrics`'s, the ones the learner families log.
 
 Shape legend: E episodes (parallel environments), T steps per episode, N rovers, P POIs.
 
-Per-episode metrics (:class:`EpisodeStats`):
-
-- ``reward``: sum of every rover's reward over every step (the paper's "episode reward");
-- ``agent_rewards`` [N]: the same per rover;
-- ``collisions``: rover-rover contacts, one per touching pair per step;
-- ``trap_contacts``: rover-trap contacts, one per (rover, trap) pair per step;
-- ``coverage_distance``: sum over POIs of the nearest rover's distance at the last step;
-- ``pois_observed``: POIs observed (a rover within ``observe_radius``) at some step.
+Per-episode metrics (:class:`EpisodeStats`): the totals of :func:`~roverswarm.metrics.episode_totals`
+(``reward`` is ``episode_reward``; ``coverage_distance`` from the final positions) and
+``pois_observed``: POIs observed (a rover within ``observe_radius``) at some step.
 """
 
 from __future__ import annotations
@@ -23,20 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from roverswarm.env.mars import EnvParams, EnvState, coverage_distance, reset, step_env
+from roverswarm.metrics import EPISODE_METRICS, episode_totals, step_stats
 from roverswarm.policies import ActFn, Plan, Policy
-
-
-def contact_counts(info: dict[str, jax.Array]) -> dict[str, jax.Array]:
-    """One step's contacts from :func:`~roverswarm.env.mars.step_env`'s info (any leading axes):
-    ``collisions`` (touching pairs, each counted once) and ``trap_contacts`` ((rover, trap) pairs)."""
-    return {"collisions": jnp.sum(info["collisions"], -1) / 2, "trap_contacts": jnp.sum(info["trap_contacts"], -1)}
-
-
-def shaped_rewards(rewards: jax.Array, info: dict[str, jax.Array], trap_shaping: float) -> jax.Array:
-    """The rewards a learner trains on: the environment's ``rewards`` [..., N] less
-    ``trap_shaping`` more per trap each rover touches (``--trap-shaping``). Episode rewards,
-    metrics and evaluations stay the environment's."""
-    return rewards - trap_shaping * info["trap_contacts"]
 
 
 @dataclass(frozen=True)
@@ -51,14 +34,10 @@ class EpisodeStats:
     pois_observed: np.ndarray  # [E]
 
     def summary(self) -> dict[str, float]:
-        """Mean over episodes of every scalar metric."""
-        return {
-            "episode_reward": float(self.reward.mean()),
-            "collisions": float(self.collisions.mean()),
-            "trap_contacts": float(self.trap_contacts.mean()),
-            "coverage_distance": float(self.coverage_distance.mean()),
-            "pois_observed": float(self.pois_observed.mean()),
-        }
+        """Mean over episodes of every scalar metric: :data:`~roverswarm.metrics.EPISODE_METRICS`
+        and ``pois_observed``."""
+        means = {name: float(getattr(self, name).mean()) for name in (*EPISODE_METRICS[1:], "pois_observed")}
+        return {"episode_reward": float(self.reward.mean()), **means}
 
 
 @dataclass(frozen=True)
@@ -83,14 +62,7 @@ def _run_episode(act: ActFn, key: jax.Array, obs: jax.Array, state: EnvState, pl
         next_obs, next_state, rewards, terminated, _, info = step_env(state, actions, params)
         obs, state = jax.tree.map(lambda old, new: jnp.where(done, old, new), (obs, state), (next_obs, next_state))
         live = 1.0 - done.astype(jnp.float32)
-        counts = contact_counts(info)
-        out = {
-            "rewards": rewards * live,
-            "collisions": counts["collisions"] * live,
-            "trap_contacts": counts["trap_contacts"] * live,
-            "rover_pos": state.rover_pos,
-            "observed": state.observed,
-        }
+        out = {**step_stats(rewards, info, live), "rover_pos": state.rover_pos, "observed": state.observed}
         return (obs, state, done | terminated), out
 
     carry = (obs, state, jnp.zeros((), bool))
@@ -128,11 +100,12 @@ def rollout(policy: Policy, key: jax.Array, params: EnvParams, num_episodes: int
     start_pos = np.asarray(states.rover_pos)[:, None]
     start_observed = np.asarray(states.observed)[:, None]
     observed = np.concatenate([start_observed, out["observed"]], axis=1)
+    totals = episode_totals(out, axis=1)
     stats = EpisodeStats(
-        reward=rewards.sum(axis=(1, 2)),
-        agent_rewards=rewards.sum(axis=1),
-        collisions=out["collisions"].sum(axis=1),
-        trap_contacts=out["trap_contacts"].sum(axis=1),
+        reward=totals["episode_reward"],
+        agent_rewards=totals["agent_rewards"],
+        collisions=totals["collisions"],
+        trap_contacts=totals["trap_contacts"],
         # from the final positions: after a termination the last step's info is of a discarded step
         coverage_distance=np.asarray(jax.vmap(coverage_distance)(out["rover_pos"][:, -1], states.poi_pos)),
         pois_observed=observed[:, -1].sum(axis=-1),

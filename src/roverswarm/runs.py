@@ -21,38 +21,14 @@ from typing import IO, Any, Callable, Iterator, Literal
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import serialization, struct
+from flax import serialization
 
-from roverswarm.algos.learner import ON_POLICY, LearnerState, init_learner
-from roverswarm.algos.ppo import PPOState, init_ppo
-from roverswarm.buffers.base import BufferState
 from roverswarm.config import TrainConfig, config_from_json, validate
-from roverswarm.env.mars import EnvParams, count_text, observation_size
+from roverswarm.env.mars import EnvParams, count_text
 from roverswarm.errors import UserError, require
+from roverswarm.learners import learner_family
+from roverswarm.metrics import EPISODE_METRICS, reduce_metric
 from roverswarm.policies import REFERENCE_POLICIES, Policy, mixed_policy, trained_policy
-
-
-@struct.dataclass
-class Runner:
-    """Everything training carries from chunk to chunk, and what a checkpoint holds (leading [S]
-    where per seed)."""
-
-    learner: LearnerState | PPOState  # [S, ...] the networks, their optimisers and statistics
-    buffer: BufferState | None  # [S, C, ...] the replay (None on-policy)
-    key: jax.Array  # [S] PRNG keys
-    episodes: jax.Array  # [] int32, episodes per seed so far (shared by all seeds)
-    updates: jax.Array  # [] int32, updates of every network per seed so far (shared)
-
-
-def start_runner(config: TrainConfig, init_seed: Callable[[jax.Array], Any], buffers: Any = None) -> Runner:
-    """Every seed's fresh state: ``init_seed(key)`` builds one seed's learner, from keys derived
-    from (``config.seed``, s) for seed s; ``buffers`` holds the seeds' empty replays (None
-    on-policy)."""
-    keys = jax.vmap(lambda s: jax.random.fold_in(jax.random.PRNGKey(config.seed), s))(jnp.arange(config.seeds))
-    init_keys, run_keys = jnp.split(jax.vmap(jax.random.split)(keys), 2, axis=1)
-    counter = lambda: jnp.zeros((), jnp.int32)  # noqa: E731 (separate arrays: the runner is donated)
-    learner = jax.vmap(init_seed)(init_keys[:, 0])
-    return Runner(learner=learner, buffer=buffers, key=run_keys[:, 0], episodes=counter(), updates=counter())
 
 
 CHECKPOINT = "checkpoint.npz"
@@ -211,41 +187,20 @@ def load_checkpoint(path: Path, template):
     return _restore(template, flat)
 
 
-LEARNER_METRICS = ("critic_loss", "actor_loss", "q_mean", "sampled_loss", "sampled_loss_max", "sampled_newest")
-"""Per-update metrics in ``metrics.csv`` (mean over agents; ``*_max``: max over agents and updates)."""
-INFER_METRICS = ("infer_loss", "infer_error")
-"""With --infer-policies: the approximations' loss, and the mean absolute error of their means
-against the other agents' current actions on the sampled observations."""
-
-
-PPO_METRICS = ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction")
-"""Per-update metrics of --algo mappo/ippo (means over the chunk's updates)."""
-
-
-def learner_metrics(config: TrainConfig) -> tuple[str, ...]:
-    """The per-update metrics ``config``'s run logs."""
-    if config.learner.algo in ON_POLICY:
-        return PPO_METRICS
-    return LEARNER_METRICS + (INFER_METRICS if config.learner.infer_policies else ())
-
-
-def reduce_metric(name: str, x, axis):
-    """Aggregate a metric: ``*_max`` metrics by their maximum, the others by their mean."""
-    return x.max(axis=axis) if name.endswith("_max") else x.mean(axis=axis)
-
-
 def metric_rows(
     config: TrainConfig, metrics: dict[str, np.ndarray], episodes: int, seconds: float
 ) -> list[dict[str, float]]:
-    """One row per seed for a chunk. ``wall_seconds`` is the chunk's time for all seeds together."""
+    """One row per seed for a chunk: the episode totals (:data:`~roverswarm.metrics.EPISODE_METRICS`,
+    every rover's reward after ``episode_reward``), the family's learner metrics and
+    ``wall_seconds``, the chunk's time for all seeds together."""
     rows = []
     for s in range(config.seeds):
         row: dict[str, float] = {"seed": s, "episodes": episodes, "episode_reward": float(metrics["episode_reward"][s])}
         for i, r in enumerate(metrics["agent_rewards"][s]):
             row[f"agent_{i}_reward"] = float(r)
-        for k in ("collisions", "trap_contacts", "coverage_distance"):
+        for k in EPISODE_METRICS[1:]:
             row[k] = float(metrics[k][s])
-        for k in learner_metrics(config):
+        for k in learner_family(config.learner.algo).metric_names(config.learner):
             row[k] = float(reduce_metric(k, metrics[k][s], None))
         row["wall_seconds"] = seconds
         rows.append(row)
@@ -336,7 +291,7 @@ class Run:
         self.params: EnvParams = validate(self.config)
 
     @classmethod
-    def of(cls, config: TrainConfig, learner: LearnerState, folder: str | os.PathLike = "(in memory)") -> Run:
+    def of(cls, config: TrainConfig, learner: Any, folder: str | os.PathLike = "(in memory)") -> Run:
         """A run held in memory (e.g. a :class:`~roverswarm.trainer.Result`'s config and networks)."""
         run = cls.__new__(cls)
         run.folder, run.config, run.params = Path(folder), config, validate(config)
@@ -348,14 +303,10 @@ class Run:
         return read_metrics(self.folder / METRICS) if (self.folder / METRICS).exists() else []
 
     @functools.cached_property
-    def learner(self) -> LearnerState | PPOState:
+    def learner(self) -> Any:
         """Every seed's networks [S, ...] from the checkpoint (read once)."""
-        config, sizes = self.config, (self.params.num_rovers, observation_size(self.params))
-        keys = jax.random.split(jax.random.PRNGKey(0), config.seeds)
-        if config.learner.algo in ON_POLICY:
-            template = jax.vmap(lambda k: init_ppo(k, config, *sizes))(keys)
-        else:
-            template = jax.vmap(lambda k: init_learner(k, config.learner, *sizes))(keys)
+        family = learner_family(self.config.learner.algo)
+        template = family.learners(family.configure(self.config, self.params), self.params)
         return _restore(template, read_arrays(self.folder / CHECKPOINT, "learner/"), prefix="learner/")
 
     def policy(self, seed: int = 0) -> Policy:
@@ -371,10 +322,8 @@ class Run:
     def _policy(self, index: int, name: str, sub_policy: int | None = None, seed: int = 0) -> Policy:
         """Seed ``index``'s policy (its networks and observation normaliser); with ensembles,
         sub-policy ``sub_policy`` for every agent, or random ones drawn with ``seed``."""
-        pick = functools.partial(jax.tree.map, lambda x: x[index])
-        norm = None if self.config.learner.algo in ON_POLICY else self.learner.obs_norm
-        norm = None if norm is None else pick(norm)
-        return trained_policy(self.config, pick(self.learner.actor), name, sub_policy, seed, obs_norm=norm)
+        actor, norm = jax.tree.map(lambda x: x[index], learner_family(self.config.learner.algo).weights(self.learner))
+        return trained_policy(self.config, actor, name, sub_policy, seed, obs_norm=norm)
 
     def policies(self, sub_policies: SubPolicies = "random", seed: int = 0, partners: Partners = "own") -> list[Policy]:
         """Every seed's trained policy; with ensembles, a random sub-policy per agent and episode

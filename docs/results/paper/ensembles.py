@@ -19,8 +19,9 @@ import numpy as np
 
 from roverswarm.config import config_from_json
 from roverswarm.env.scenarios import get_scenario
-from roverswarm.experiments.grid import GridRun
-from roverswarm.experiments.paper import TIMING, load, relative_change
+from roverswarm.experiments.arms import GridRun
+from roverswarm.experiments.results import TIMING, load
+from roverswarm.experiments.significance import relative_change
 from roverswarm.experiments.sweep import evaluation, read_table
 from roverswarm.runs import CONFIG, markdown_table, write_csv
 

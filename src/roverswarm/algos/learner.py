@@ -23,9 +23,7 @@ from roverswarm.buffers.base import Transition
 from roverswarm.env.mars import ACTION_SIZE, OWN_POSITION, other_rovers
 
 Algo = Literal["maddpg", "ddpg", "mappo", "ippo"]
-ALGOS: tuple[str, ...] = ("maddpg", "ddpg", "mappo", "ippo")
-ON_POLICY: tuple[str, ...] = ("mappo", "ippo")
-"""The on-policy learners (:mod:`roverswarm.algos.ppo`); the others learn from a replay."""
+"""The ``--algo`` choices; :data:`roverswarm.learners.FAMILIES` maps each to its learner family."""
 
 
 @dataclass(frozen=True)

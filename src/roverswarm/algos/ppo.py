@@ -48,7 +48,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 import flax.linen as nn
 import jax
@@ -59,9 +59,6 @@ from flax import struct
 from roverswarm.algos.learner import AlgoConfig
 from roverswarm.algos.normalize import ObsNorm, init_obs_norm
 from roverswarm.env.mars import ACTION_SIZE
-
-if TYPE_CHECKING:
-    from roverswarm.config import TrainConfig
 
 
 # ----------------------------------------------------------------------------- configuration
@@ -101,6 +98,19 @@ class PPOConfig:
     """Standardise value targets by a running mean and variance (MAPPO's ValueNorm)."""
     normalize_advantages: bool = True
     """Standardise advantages per minibatch."""
+
+
+@dataclass(frozen=True)
+class OnPolicyConfig:
+    """What shapes the on-policy family's chunk, and all this module reads: the fields of the
+    run's :class:`~roverswarm.config.TrainConfig` of the same names (so a ``TrainConfig``
+    serves wherever one is read)."""
+
+    learner: AlgoConfig
+    ppo: PPOConfig
+    seeds: int
+    num_envs: int
+    log_every: int
 
 
 def updates_per_iteration(config: PPOConfig) -> int:
@@ -204,7 +214,7 @@ class PPOState:
     returns: ObsNorm  # running mean and variance of the value targets [1] (--value-norm)
 
 
-def optimizers(config: TrainConfig) -> tuple[optax.GradientTransformation, optax.GradientTransformation]:
+def optimizers(config: OnPolicyConfig) -> tuple[optax.GradientTransformation, optax.GradientTransformation]:
     """Adam (eps 1e-5) with global-norm clipping (--grad-clip), for (actor, value network);
     with --anneal-episodes the learning rates decay linearly to 0 over that many episodes."""
     learner, ppo = config.learner, config.ppo
@@ -219,7 +229,7 @@ def optimizers(config: TrainConfig) -> tuple[optax.GradientTransformation, optax
     return make(learner.actor_lr), make(learner.critic_lr)
 
 
-def init_ppo(key: jax.Array, config: TrainConfig, num_rovers: int, obs_size: int) -> PPOState:
+def init_ppo(key: jax.Array, config: OnPolicyConfig, num_rovers: int, obs_size: int) -> PPOState:
     """Fresh networks of one seed."""
     actor_net, critic_net = networks(config.learner, config.ppo)
     actor_opt, critic_opt = optimizers(config)
@@ -329,7 +339,7 @@ def ppo_loss(
     return total, parts
 
 
-def update_minibatch(config: TrainConfig, state: PPOState, batch: Batch) -> tuple[PPOState, dict[str, jax.Array]]:
+def update_minibatch(config: OnPolicyConfig, state: PPOState, batch: Batch) -> tuple[PPOState, dict[str, jax.Array]]:
     """One gradient step of the actor and of the value network on ``batch``; returns the
     state (networks and optimiser states changed) and :func:`ppo_loss`'s parts."""
     actor_net, critic_net = networks(config.learner, config.ppo)

@@ -40,7 +40,9 @@ from rich.live import Live
 
 from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
-from roverswarm.experiments.grid import GridRun, Summary, check_jobs, default_jobs, status, train_runs
+from roverswarm.experiments.arms import GridRun, check_jobs, status
+from roverswarm.experiments.live import Summary
+from roverswarm.experiments.pool import default_jobs, train_runs
 from roverswarm.config import PRESETS, validate, with_options
 from roverswarm.runs import METRICS, atomic_write, folder_lock, markdown_table, read_metrics, write_csv
 

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from roverswarm.config import TrainConfig, validate
-from roverswarm.trainer import init_runner, run_buffer, run_chunk
+from roverswarm.learners.offpolicy import configure, init, run_buffer, run_chunk
 
 
 def fill(buffer, state):
@@ -34,21 +34,21 @@ def chunk_seconds(configs: list[TrainConfig], chunks: int) -> list[list[float]]:
     runs = []
     for config in configs:
         params = validate(config)
-        buffer = run_buffer(config, params)
-        runner = init_runner(config, params, buffer)
+        buffer, program, total = run_buffer(config, params), configure(config, params), jnp.int32(config.episodes)
+        runner = init(program, params, config.seed)
         warm_chunks = -(-config.warmup // (config.log_every * params.max_steps)) + 1
         for _ in range(warm_chunks):  # compile, and fill the replay past the warm-up
-            runner, metrics = run_chunk(config, params, buffer, runner)
+            runner, metrics = run_chunk(program, params, runner, total)
         runner = runner.replace(buffer=jax.jit(jax.vmap(partial(fill, buffer)), donate_argnums=0)(runner.buffer))
-        runner, metrics = run_chunk(config, params, buffer, runner)  # a re-ranking of the full replay
+        runner, metrics = run_chunk(program, params, runner, total)  # a re-ranking of the full replay
         jax.block_until_ready(metrics)
-        runs.append([config, params, buffer, runner])
+        runs.append([program, params, total, runner])
     times: list[list[float]] = [[] for _ in configs]
     for _ in range(chunks):
         for run, spent in zip(runs, times):
-            config, params, buffer, runner = run
+            program, params, total, runner = run
             start = time.perf_counter()
-            run[3], metrics = run_chunk(config, params, buffer, runner)
+            run[3], metrics = run_chunk(program, params, runner, total)
             jax.block_until_ready(metrics)
             spent.append(time.perf_counter() - start)
     return times

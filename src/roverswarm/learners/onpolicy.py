@@ -1,6 +1,7 @@
-"""On-policy training (``--algo mappo`` or ``ippo``): rollouts, GAE and PPO updates of every
-seed in one jitted chunk; :mod:`roverswarm.algos.ppo` holds the networks, the loss and the
-equations, :func:`roverswarm.trainer.train` the host loop both kinds of learner share.
+"""The on-policy family (``--algo mappo`` or ``ippo``): rollouts, GAE and PPO updates of every
+seed in one jitted chunk, keyed on :class:`~roverswarm.algos.ppo.OnPolicyConfig` only;
+:mod:`roverswarm.algos.ppo` holds the networks, the loss and the equations,
+:func:`roverswarm.trainer.train` the host loop every family shares.
 
 Shape legend: S seeds, E parallel environments per seed, T steps per episode, N rovers,
 O observation size, B = T * E * N samples per iteration.
@@ -12,16 +13,21 @@ rover, then ``epochs`` passes over the B samples in ``minibatches`` shuffled min
 
 from __future__ import annotations
 
+import dataclasses
 from functools import partial
 
 import jax
 import jax.numpy as jnp
 from flax import struct
 
+from roverswarm.algos.learner import AlgoConfig
 from roverswarm.algos.normalize import ObsNorm, std, update_obs_norm
 from roverswarm.algos.ppo import (
     Batch,
+    OnPolicyConfig,
+    PPOConfig,
     PPOState,
+    act,
     actor_inputs,
     critic_inputs,
     gae,
@@ -31,10 +37,16 @@ from roverswarm.algos.ppo import (
     update_minibatch,
     updates_per_iteration,
 )
-from roverswarm.config import TrainConfig
 from roverswarm.env.mars import EnvParams, observation_size, reset, step_env
-from roverswarm.rollout import contact_counts, shaped_rewards
-from roverswarm.runs import Runner, start_runner
+from roverswarm.errors import require, require_finite, require_positive
+from roverswarm.learners.base import Family, Runner, no_replay, seed_keys, start_runner
+from roverswarm.metrics import episode_totals, shaped_rewards, step_stats
+
+PPO_METRICS = ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction")
+"""Per-update metrics of --algo mappo/ippo (means over the chunk's updates)."""
+
+PPO_USES = ("algo", "actor_lr", "critic_lr", "gamma", "grad_clip", "hidden", "trap_shaping")
+"""The learner options PPO reads; the other ones are the off-policy family's."""
 
 
 @struct.dataclass
@@ -51,10 +63,42 @@ class Trajectory:
     mask: jax.Array  # [T, E] float, 1 until (and including) the terminating step
 
 
-def init_runner(config: TrainConfig, params: EnvParams) -> Runner:
-    """Fresh networks for every seed (keys derived from (seed, s) as for MADDPG); no replay."""
+def check(config, params: EnvParams) -> None:
+    """The PPO options of run ``config`` (a ``TrainConfig``) are in range; else :class:`UserError`."""
+    ppo = config.ppo
+    require_positive(ppo, ("epochs", "minibatches"))
+    samples = params.max_steps * config.num_envs * params.num_rovers
+    require(
+        samples % ppo.minibatches == 0,
+        f"--minibatches ({ppo.minibatches}) must divide the samples per iteration "
+        f"(episode length x --num-envs x rovers = {samples})",
+    )
+    require_finite(ppo.clip_eps, 0, "clip-eps", strict=True)
+    if ppo.value_clip is not None:
+        require_finite(ppo.value_clip, 0, "value-clip", strict=True)
+    require(0 <= ppo.gae_lambda <= 1, f"--gae-lambda must be in [0, 1], got {ppo.gae_lambda}")
+    for name in ("ent_coef", "vf_coef"):
+        require_finite(getattr(ppo, name), 0, name.replace("_", "-"))
+    require(ppo.anneal_episodes >= 0, f"--anneal-episodes must be >= 0, got {ppo.anneal_episodes}")
+    require(ppo.activation in ("tanh", "relu"), f"--activation must be 'tanh' or 'relu', got '{ppo.activation}'")
+
+
+def configure(config, params: EnvParams) -> OnPolicyConfig:
+    """The on-policy config of run ``config`` (a ``TrainConfig``)."""
+    return OnPolicyConfig(**{f.name: getattr(config, f.name) for f in dataclasses.fields(OnPolicyConfig)})
+
+
+def init(config: OnPolicyConfig, params: EnvParams, seed: int) -> Runner:
+    """Fresh networks for every seed of base seed ``seed`` (keys derived from (seed, s) as
+    off-policy); no replay."""
     sizes = (params.num_rovers, observation_size(params))
-    return start_runner(config, lambda key: init_ppo(key, config, *sizes))
+    return start_runner(seed, config.seeds, lambda key: init_ppo(key, config, *sizes))
+
+
+def learners(config: OnPolicyConfig, params: EnvParams) -> PPOState:
+    """Every seed's fresh networks [S, ...] (a checkpoint's template)."""
+    sizes = (params.num_rovers, observation_size(params))
+    return jax.vmap(lambda key: init_ppo(key, config, *sizes))(seed_keys(0, config.seeds)[:, 0])
 
 
 def _where_env(done: jax.Array, old, new):
@@ -62,7 +106,9 @@ def _where_env(done: jax.Array, old, new):
     return jax.tree.map(lambda o, n: jnp.where(done.reshape(-1, *([1] * (n.ndim - 1))), o, n), old, new)
 
 
-def collect(config: TrainConfig, params: EnvParams, actor, key: jax.Array) -> tuple[Trajectory, dict[str, jax.Array]]:
+def collect(
+    config: OnPolicyConfig, params: EnvParams, actor, key: jax.Array
+) -> tuple[Trajectory, dict[str, jax.Array]]:
     """E fresh episodes of T steps of one seed with the stochastic policy ``actor``.
 
     After a termination (mission mode) an episode stands still and its steps are masked out.
@@ -92,25 +138,16 @@ def collect(config: TrainConfig, params: EnvParams, actor, key: jax.Array) -> tu
             truncated=truncated & live,
             mask=live.astype(jnp.float32),
         )
-        stats = {k: v * live for k, v in contact_counts(info).items()}
-        stats["rewards"] = rewards * live[:, None]
-        stats["coverage_distance"] = info["coverage_distance"]
+        stats = step_stats(rewards, info, live)
         carry = (_where_env(done, obs, next_obs), _where_env(done, env_state, next_state), done | terminated)
         return carry, (step, stats)
 
     done = jnp.zeros((config.num_envs,), bool)
     _, (traj, stats) = jax.lax.scan(body, (obs, env_state, done), jax.random.split(k_steps, params.max_steps))
-    episode = {
-        "episode_reward": stats["rewards"].sum(axis=(0, 2)),
-        "agent_rewards": stats["rewards"].sum(axis=0),
-        "collisions": stats["collisions"].sum(axis=0),
-        "trap_contacts": stats["trap_contacts"].sum(axis=0),
-        "coverage_distance": stats["coverage_distance"][-1],
-    }
-    return traj, episode
+    return traj, episode_totals(stats)
 
 
-def values_of(config: TrainConfig, critic, returns: ObsNorm, obs: jax.Array) -> jax.Array:
+def values_of(config: OnPolicyConfig, critic, returns: ObsNorm, obs: jax.Array) -> jax.Array:
     """Every rover's value [..., N] of observations [..., N, O] (de-standardised with --value-norm)."""
     value = networks(config.learner, config.ppo)[1].apply(critic, critic_inputs(config.learner.algo, obs))[..., 0]
     if config.ppo.value_norm:
@@ -118,7 +155,7 @@ def values_of(config: TrainConfig, critic, returns: ObsNorm, obs: jax.Array) -> 
     return value
 
 
-def make_batch(config: TrainConfig, state: PPOState, traj: Trajectory) -> tuple[Batch, ObsNorm]:
+def make_batch(config: OnPolicyConfig, state: PPOState, traj: Trajectory) -> tuple[Batch, ObsNorm]:
     """GAE per rover on ``traj`` and the flat [B] batch of the update; with --value-norm the
     value-target statistics are updated first and targets and values standardised by them.
     Returns the batch and the (updated) value-target statistics."""
@@ -154,7 +191,7 @@ def make_batch(config: TrainConfig, state: PPOState, traj: Trajectory) -> tuple[
     return batch, returns
 
 
-def iteration(config: TrainConfig, params: EnvParams, state: PPOState, key: jax.Array):
+def iteration(config: OnPolicyConfig, params: EnvParams, state: PPOState, key: jax.Array):
     """One PPO iteration of one seed: E episodes, GAE, ``epochs`` x ``minibatches`` updates.
 
     Returns the state and ``(episode stats [E], learner info (means over the updates))``."""
@@ -174,11 +211,11 @@ def iteration(config: TrainConfig, params: EnvParams, state: PPOState, key: jax.
 
 
 @partial(jax.jit, static_argnums=(0,), donate_argnums=(2,))
-def run_chunk(config: TrainConfig, params: EnvParams, runner: Runner):
+def run_chunk(config: OnPolicyConfig, params: EnvParams, runner: Runner, total: jax.Array | None = None):
     """``log_every`` episodes per seed (``log_every / num_envs`` iterations, seeds vmapped);
-    returns the runner and per-seed chunk metrics [S]: the episode stats and
-    :data:`~roverswarm.runs.PPO_METRICS`
-    (means over the chunk's episodes and updates)."""
+    returns the runner and per-seed chunk metrics [S]: the episode totals and
+    :data:`PPO_METRICS` (means over the chunk's episodes and updates). The run's length
+    ``total`` changes nothing here (annealing counts --anneal-episodes)."""
     iterations = config.log_every // config.num_envs
 
     def one_seed(state: PPOState, key: jax.Array):
@@ -196,3 +233,26 @@ def run_chunk(config: TrainConfig, params: EnvParams, runner: Runner):
         updates=runner.updates + iterations * updates_per_iteration(config.ppo),
     )
     return runner, metrics
+
+
+def _act(acting: tuple[AlgoConfig, PPOConfig], weights, obs: jax.Array, plan) -> jax.Array:
+    return act(*acting, weights[0], obs)
+
+
+FAMILY = Family(
+    name="on-policy",
+    configure=configure,
+    check=check,
+    init=init,
+    run_chunk=run_chunk,
+    learners=learners,
+    acting=lambda config: (config.learner, config.ppo),
+    act=_act,
+    weights=lambda state: (state.actor, None),  # no observation normaliser
+    metric_names=lambda learner: PPO_METRICS,
+    replay=False,
+    replay_bytes=no_replay,
+    options=frozenset(PPO_USES + tuple(f.name for f in dataclasses.fields(PPOConfig))),
+    misfit="--algo {algo} learns on-policy (start from --preset {algo})",
+)
+"""MAPPO and IPPO: PPO with one shared actor and a centralised or local value."""

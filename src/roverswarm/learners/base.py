@@ -1,0 +1,103 @@
+"""A learner family as one record of pure functions, and the state training carries.
+
+A *family* (off-policy: MADDPG, DDPG and the MATD3 options; on-policy: MAPPO, IPPO) is one
+frozen :class:`Family` record, built like the replay's :class:`~roverswarm.buffers.base.Buffer`:
+the host loop (:func:`roverswarm.trainer.train`), the run folder (:class:`roverswarm.runs.Run`)
+and the trained policies call its functions and never ask which family they hold. The
+registry :mod:`roverswarm.learners` maps ``--algo`` to its family; a new family is one module
+that builds a record, plus one line there.
+
+What is compiled and what is data: ``configure(config, params)`` returns the family's own
+config (a frozen, hashable dataclass) holding exactly what shapes the compiled chunk: the
+learner's options and network sizes, the replay's, the seeds vmapped, the parallel
+environments and the episodes per chunk. The base seed, the run's episode count and its
+output folder are not in it: the seed goes to ``init`` and the episode count to
+``run_chunk`` as traced data, so a second run with another seed or length compiles nothing
+new (a replay capped at a short run's transitions is a new shape, though).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable, Hashable
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from roverswarm.buffers.base import BufferState
+from roverswarm.env.mars import EnvParams
+
+
+@struct.dataclass
+class Runner:
+    """Everything training carries from chunk to chunk, and what a checkpoint holds (leading [S]
+    where per seed)."""
+
+    learner: Any  # [S, ...] the family's learner state: networks, optimisers, statistics
+    buffer: BufferState | None  # [S, C, ...] the replay (None on-policy)
+    key: jax.Array  # [S] PRNG keys
+    episodes: jax.Array  # [] int32, episodes per seed so far (shared by all seeds)
+    updates: jax.Array  # [] int32, updates of every network per seed so far (shared)
+
+
+def seed_keys(seed: int, seeds: int) -> jax.Array:
+    """[S, 2, 2] per seed s of base seed ``seed``: (init key, run key), from (seed, s)."""
+    keys = jax.vmap(lambda s: jax.random.fold_in(jax.random.PRNGKey(seed), s))(jnp.arange(seeds))
+    return jax.vmap(jax.random.split)(keys)
+
+
+def start_runner(seed: int, seeds: int, init_seed: Callable[[jax.Array], Any], buffers: Any = None) -> Runner:
+    """Every seed's fresh state: ``init_seed(key)`` builds one seed's learner, from keys derived
+    from (``seed``, s) for seed s; ``buffers`` holds the seeds' empty replays (None on-policy)."""
+    keys = seed_keys(seed, seeds)
+    counter = lambda: jnp.zeros((), jnp.int32)  # noqa: E731 (separate arrays: the runner is donated)
+    learner = jax.vmap(init_seed)(keys[:, 0])
+    return Runner(learner=learner, buffer=buffers, key=keys[:, 1], episodes=counter(), updates=counter())
+
+
+Program = Any
+"""A family's own config (its ``configure``'s result): frozen, hashable, the chunk's static key."""
+
+
+@dataclass(frozen=True)
+class Family:
+    """A learner family as pure functions; see the module docstring. ``config`` below is a
+    :class:`~roverswarm.config.TrainConfig`, ``program`` the family's own config."""
+
+    name: str
+    configure: Callable[[Any, EnvParams], Program]
+    """(config, params) -> program: what of the run shapes the compiled chunk."""
+    check: Callable[[Any, EnvParams], None]
+    """(config, params) -> None: the family's own options are in range, else :class:`UserError`."""
+    init: Callable[[Program, EnvParams, int], Runner]
+    """(program, params, seed) -> every seed's fresh :class:`Runner` (the checkpoint's template)."""
+    run_chunk: Callable[[Program, EnvParams, Runner, jax.Array], tuple[Runner, dict[str, jax.Array]]]
+    """Jitted, keyed on the program: (program, params, runner, run episodes) -> (runner, per-seed
+    metrics [S, ...]) after ``log_every`` more episodes per seed."""
+    learners: Callable[[Program, EnvParams], Any]
+    """(program, params) -> every seed's learner state [S, ...]: the template of a checkpoint's
+    ``learner/`` arrays, without the replay."""
+    acting: Callable[[Any], Hashable]
+    """config -> what acting reads of it (hashable: rollouts of new weights reuse their programs)."""
+    act: Callable[[Hashable, Any, jax.Array, Any], jax.Array]
+    """(acting, weights, obs [..., N, O], plan) -> deterministic actions [..., N, A]; ``plan``:
+    with ensembles, every agent's sub-policy [..., N]."""
+    weights: Callable[[Any], tuple[Any, Any]]
+    """Learner state -> the ``weights`` of :attr:`act`: (actor parameters, observation
+    normaliser or None)."""
+    metric_names: Callable[[Any], tuple[str, ...]]
+    """The learner's options (``config.learner``) -> its per-update metrics in ``metrics.csv``."""
+    replay: bool
+    """Whether the family learns from a replay (its runner carries one)."""
+    replay_bytes: Callable[[Any, EnvParams], tuple[int, int, int]]
+    """(config, params) -> (bytes, transitions, bytes per transition) of every seed's replay."""
+    options: frozenset[str]
+    """The options (leaf field names of the config) only some families read, that this one reads."""
+    misfit: str
+    """Why another family's option does not apply to this one's ``{algo}``, for the error."""
+
+
+def no_replay(config: Any, params: EnvParams) -> tuple[int, int, int]:
+    """:attr:`Family.replay_bytes` of a family that keeps no replay."""
+    return 0, 0, 0

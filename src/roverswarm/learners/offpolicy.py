@@ -1,0 +1,310 @@
+"""The off-policy family (``--algo maddpg`` or ``ddpg``, with the MATD3 options): environment,
+replay and updates in one jitted chunk; :mod:`roverswarm.algos.maddpg` holds the update and
+its equations, :func:`roverswarm.trainer.train` the host loop every family shares.
+
+Shape legend: S seeds, E parallel environments per seed, T steps per episode (25),
+N agents, K = T * E transitions per iteration, U = K / update_every updates per iteration.
+
+One *iteration* runs, for every seed at once (vmapped): E fresh episodes of T steps with
+exploration noise, their K transitions into the replay (compact records: the rovers' states
+and the layout, from which each update's batch rebuilds its observations, see
+:mod:`roverswarm.buffers.compact`), then U updates of every agent (once the replay holds
+``warmup`` transitions). A *chunk* is ``log_every / E`` iterations in one ``lax.scan``: one
+jitted call per 1000 episodes, keyed on :class:`OffPolicyConfig` only. The number of updates
+per environment step is the same whatever E is: one update of every agent per
+``update_every`` environment steps.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+
+from roverswarm.algos.learner import AlgoConfig, LearnerState, act, init_learner, observe_batch
+from roverswarm.algos.maddpg import inference_error, update
+from roverswarm.buffers import compact, make_buffer
+from roverswarm.buffers.base import (
+    Buffer,
+    BufferState,
+    Draw,
+    ReplayConfig,
+    importance_weights,
+    newest_fraction,
+    recent_indices,
+)
+from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, reset, step_env
+from roverswarm.learners.base import Family, Runner, seed_keys, start_runner
+from roverswarm.metrics import episode_totals, reduce_metric, shaped_rewards, step_stats
+
+LEARNER_METRICS = ("critic_loss", "actor_loss", "q_mean", "sampled_loss", "sampled_loss_max", "sampled_newest")
+"""Per-update metrics in ``metrics.csv`` (mean over agents; ``*_max``: max over agents and updates)."""
+INFER_METRICS = ("infer_loss", "infer_error")
+"""With --infer-policies: the approximations' loss, and the mean absolute error of their means
+against the other agents' current actions on the sampled observations."""
+
+RUN_OPTIONS = ("update_every", "warmup", "noise_std", "noise_final", "noise_decay_episodes")
+"""The run options of learning from a replay with exploration noise."""
+
+
+@dataclass(frozen=True)
+class OffPolicyConfig:
+    """What shapes the off-policy chunk: the fields of the run's
+    :class:`~roverswarm.config.TrainConfig` of the same names (so a ``TrainConfig`` serves
+    wherever one is read), with the replay capped at the run's own transitions."""
+
+    learner: AlgoConfig
+    buffer: ReplayConfig
+    seeds: int
+    num_envs: int
+    update_every: int
+    warmup: int
+    noise_std: float
+    noise_final: float
+    noise_decay_episodes: int
+    log_every: int
+
+
+def run_replay(config, params: EnvParams) -> ReplayConfig:
+    """The replay of run ``config`` (a ``TrainConfig``). It never holds more than the run's own
+    transitions (``--episodes`` x episode length per seed), whatever ``--buffer-size`` says: a
+    replay that never fills draws what a larger one would, so a short run gets the same
+    numbers from a fraction of the memory."""
+    capacity = min(config.buffer.buffer_size, config.episodes * params.max_steps)
+    return dataclasses.replace(config.buffer, buffer_size=capacity)
+
+
+def configure(config, params: EnvParams) -> OffPolicyConfig:
+    """The off-policy config of run ``config`` (a ``TrainConfig``)."""
+    fields = {f.name: getattr(config, f.name) for f in dataclasses.fields(OffPolicyConfig)}
+    return OffPolicyConfig(**{**fields, "buffer": run_replay(config, params)})
+
+
+def run_buffer(config, params: EnvParams) -> Buffer:
+    """The replay of run ``config`` (:func:`run_replay`), with one partition per sub-policy of
+    every agent if K > 1."""
+    return make_buffer(run_replay(config, params), params.num_rovers, config.learner.ensemble)
+
+
+def _buffer(config: OffPolicyConfig, params: EnvParams) -> Buffer:
+    return make_buffer(config.buffer, params.num_rovers, config.learner.ensemble)
+
+
+def init(config: OffPolicyConfig, params: EnvParams, seed: int) -> Runner:
+    """Fresh networks and empty replays for every seed of base seed ``seed``."""
+    buffer = _buffer(config, params)
+    buffers = jax.vmap(lambda _: compact.init(buffer, params, config.num_envs))(jnp.arange(config.seeds))
+    sizes = (params.num_rovers, observation_size(params))
+    return start_runner(seed, config.seeds, lambda key: init_learner(key, config.learner, *sizes), buffers)
+
+
+def learners(config: OffPolicyConfig, params: EnvParams) -> LearnerState:
+    """Every seed's fresh networks [S, ...] (a checkpoint's template)."""
+    sizes = (params.num_rovers, observation_size(params))
+    return jax.vmap(lambda key: init_learner(key, config.learner, *sizes))(seed_keys(0, config.seeds)[:, 0])
+
+
+def replay_bytes(config, params: EnvParams) -> tuple[int, int, int]:
+    """(bytes, transitions, bytes per transition) of every seed's replay of run ``config``: the
+    stored transitions and episodes, and the sampling state of the ranked replay and the
+    ensembles' partitions, from their shapes (nothing is allocated)."""
+    buffer = run_buffer(config, params)
+    shapes = jax.eval_shape(lambda: compact.init(buffer, params, config.num_envs))
+    per_transition = math.ceil(compact.nbytes(shapes) / buffer.capacity)
+    return config.seeds * buffer.capacity * per_transition, buffer.capacity, per_transition
+
+
+# ----------------------------------------------------------------------------- jitted core
+
+
+def noise_scale(config: OffPolicyConfig, episodes: jax.Array) -> jax.Array:
+    """Exploration noise std after ``episodes`` episodes: linear from --noise-std to --noise-final."""
+    if config.noise_decay_episodes == 0:
+        return jnp.asarray(config.noise_std)
+    frac = jnp.minimum(episodes / config.noise_decay_episodes, 1.0)
+    return config.noise_std + frac * (config.noise_final - config.noise_std)
+
+
+def importance_exponent(config: OffPolicyConfig, episodes: jax.Array, total: jax.Array) -> jax.Array:
+    """The importance weights' exponent after ``episodes`` of the run's ``total`` episodes:
+    linear from --importance-exponent to 1 at the run's last episode."""
+    start = config.buffer.importance_exponent
+    return start + jnp.minimum(episodes / total, 1.0) * (1.0 - start)
+
+
+def collect(config: OffPolicyConfig, params: EnvParams, learner: LearnerState, key: jax.Array, noise_std: jax.Array):
+    """E episodes of one seed with Gaussian exploration noise of std ``noise_std``; with
+    ensembles, every agent runs one sub-policy per episode, drawn uniformly in each environment.
+
+    Returns the episodes for the replay (:class:`~roverswarm.buffers.compact.Collected`), the
+    observations [T, E, N, O] the actors saw and the episode totals [E]
+    (:func:`~roverswarm.metrics.episode_totals`).
+    """
+    k_reset, k_steps = jax.random.split(key)
+    obs, state = jax.vmap(reset, in_axes=(0, None))(jax.random.split(k_reset, config.num_envs), params)
+    k = config.learner.ensemble
+    policy = None
+    if k > 1:
+        policy = jax.random.randint(jax.random.fold_in(key, 1), (config.num_envs, params.num_rovers), 0, k)
+
+    def body(carry, step_key):
+        obs, state = carry
+        noise = noise_std * jax.random.normal(step_key, (config.num_envs, params.num_rovers, ACTION_SIZE))
+        actions = jnp.clip(act(config.learner, learner.actor, obs, policy, learner.obs_norm) + noise, -1.0, 1.0)
+        next_obs, next_state, rewards, terminated, _, info = jax.vmap(step_env, in_axes=(0, 0, None))(
+            state, actions, params
+        )
+        learned = shaped_rewards(rewards, info, config.learner.trap_shaping)
+        stored = (compact.rovers_of(state), actions, learned, terminated)
+        return (next_obs, next_state), (stored, obs, step_stats(rewards, info))
+
+    (_, last), (steps, observations, stats) = jax.lax.scan(
+        body, (obs, state), jax.random.split(k_steps, params.max_steps)
+    )
+    collected = compact.Collected(*steps, compact.layout_of(state), compact.rovers_of(last), policy)
+    return collected, observations, episode_totals(stats)
+
+
+def learn(
+    config: OffPolicyConfig,
+    params: EnvParams,
+    buffer: Buffer,
+    learner: LearnerState,
+    buffer_state: BufferState,
+    key: jax.Array,
+    draw: Draw,
+    exponent: jax.Array,
+):
+    """One update of every agent of one seed on the transitions of ``draw``, drawn from its
+    replay (observations rebuilt from the compact records); the sampled TD losses go back to
+    it. ``key`` draws the recent batch of inference; ``exponent`` is the importance weights'.
+
+    Info per agent [N] (the update's losses and Q; with --infer-policies the approximations'
+    error before the update) or per sampling group [N * K] (what was sampled: its mean and
+    max TD loss, and the fraction drawn from the newest 10% of the replay). A group with an
+    empty partition gets zero weights, so it changes nothing."""
+    expand = partial(compact.expand, buffer_state, params=params, num_envs=config.num_envs)
+    batch = expand(draw.indices)
+    weights = (
+        importance_weights(draw, exponent) if config.buffer.importance_weights else jnp.ones(draw.probabilities.shape)
+    )
+    weights = weights * (draw.population > 0)[:, None]
+    error = recent = None
+    if config.learner.infer_policies:
+        error = inference_error(config.learner, learner, batch)
+        recent = expand(
+            recent_indices(
+                buffer_state, jax.random.fold_in(key, 1), config.learner.infer_window, config.buffer.batch_size
+            )
+        )
+    learner, info = update(config.learner, learner, batch, weights, recent, jax.random.fold_in(key, 2))
+    if error is not None:
+        info["infer_error"] = error
+    td_loss = info.pop("td_loss")
+    buffer_state = buffer.set_priorities(buffer_state, draw.indices, td_loss)
+    info.update(
+        sampled_loss=td_loss.mean(-1),
+        sampled_loss_max=td_loss.max(-1),
+        sampled_newest=newest_fraction(buffer_state, draw.indices, 0.1),
+    )
+    return learner, buffer_state, info
+
+
+def iteration(config: OffPolicyConfig, params: EnvParams, buffer: Buffer, total: jax.Array, runner: Runner, _):
+    """E episodes per seed, their transitions into the replay, then U updates per seed."""
+    keys = jax.vmap(lambda k: jax.random.split(k, 3))(runner.key)  # [S, 3, 2]
+    noise_std = noise_scale(config, runner.episodes)
+    collected, observations, episode = jax.vmap(partial(collect, config, params), in_axes=(0, 0, None))(
+        runner.learner, keys[:, 0], noise_std
+    )
+    flat_obs = observations.reshape(observations.shape[0], -1, *observations.shape[3:])  # [S, K, N, O]
+    learner = jax.vmap(partial(observe_batch, config.learner))(runner.learner, flat_obs)
+    buffer_state = jax.vmap(partial(compact.add, buffer))(runner.buffer, collected)
+    episodes = runner.episodes + config.num_envs
+    transitions_seen = episodes * params.max_steps
+    num_updates = config.num_envs * params.max_steps // config.update_every
+    exponent = importance_exponent(config, runner.episodes, total)
+
+    def do_updates(learner, buffer_state, key):
+        def one(carry, xs):
+            learner, buffer_state = carry
+            learner, buffer_state, info = jax.vmap(partial(learn, config, params, buffer), in_axes=(0, 0, 0, 0, None))(
+                learner, buffer_state, *xs, exponent
+            )
+            return (learner, buffer_state), info
+
+        update_keys = jax.vmap(lambda k: jax.random.split(k, num_updates), out_axes=1)(key)  # [U, S]
+        # a draw reads nothing the updates change, so all U are drawn at once: [U, S, G, B]
+        draws = jax.vmap(jax.vmap(buffer.draw, in_axes=(None, 0)), in_axes=(0, 1), out_axes=1)(
+            buffer_state, update_keys
+        )
+        (learner, buffer_state), info = jax.lax.scan(one, (learner, buffer_state), (update_keys, draws))
+        return learner, buffer_state, {k: reduce_metric(k, v, 0) for k, v in info.items()}, jnp.ones(())
+
+    def skip(learner, buffer_state, key):
+        shapes = jax.eval_shape(do_updates, learner, buffer_state, key)[2]
+        return learner, buffer_state, jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes), jnp.zeros(())
+
+    # the warm-up gate is the same for every seed, so this stays a real branch under the seed vmap
+    learner, buffer_state, info, updated = jax.lax.cond(
+        transitions_seen >= config.warmup, do_updates, skip, learner, buffer_state, keys[:, 1]
+    )
+    updates = runner.updates + updated.astype(jnp.int32) * num_updates
+    due = config.buffer.refresh_due(runner.updates, updates)  # shared by all seeds
+    buffer_state = jax.vmap(buffer.refresh, in_axes=(0, None))(buffer_state, due)
+    runner = Runner(learner=learner, buffer=buffer_state, key=keys[:, 2], episodes=episodes, updates=updates)
+    return runner, (episode, info, updated)
+
+
+@partial(jax.jit, static_argnums=(0,), donate_argnums=(2,))
+def run_chunk(config: OffPolicyConfig, params: EnvParams, runner: Runner, total: jax.Array):
+    """``log_every`` episodes per seed of a run of ``total`` episodes (traced: another length
+    compiles nothing new); returns the runner and per-seed chunk metrics."""
+    iterations = config.log_every // config.num_envs
+    buffer = _buffer(config, params)
+    runner, (episode, info, updated) = jax.lax.scan(
+        partial(iteration, config, params, buffer, total), runner, None, length=iterations
+    )
+    # episode: [I, S, E, ...] -> mean over iterations and environments, per seed
+    metrics = {k: v.mean(axis=(0, 2)) for k, v in episode.items()}
+    count = jnp.maximum(updated.sum(), 1.0)
+    for k, v in info.items():  # [I, S, N], over the iterations that updated (the others hold zeros)
+        metrics[k] = v.max(axis=0) if k.endswith("_max") else (v * updated[:, None, None]).sum(axis=0) / count
+    return runner, metrics
+
+
+def metric_names(learner: AlgoConfig) -> tuple[str, ...]:
+    """The per-update metrics a run with these learner options logs."""
+    return LEARNER_METRICS + (INFER_METRICS if learner.infer_policies else ())
+
+
+def _act(learner: AlgoConfig, weights, obs: jax.Array, plan) -> jax.Array:
+    actor, obs_norm = weights
+    return act(learner, actor, obs, plan, obs_norm)
+
+
+FAMILY = Family(
+    name="off-policy",
+    configure=configure,
+    check=lambda config, params: None,  # the replay's and MADDPG's options: roverswarm.config.validate
+    init=init,
+    run_chunk=run_chunk,
+    learners=learners,
+    acting=lambda config: config.learner,
+    act=_act,
+    weights=lambda state: (state.actor, state.obs_norm),
+    metric_names=metric_names,
+    replay=True,
+    replay_bytes=replay_bytes,
+    options=frozenset(
+        [f.name for f in dataclasses.fields(AlgoConfig)]
+        + [f.name for f in dataclasses.fields(ReplayConfig)]
+        + list(RUN_OPTIONS)
+    ),
+    misfit="it is a PPO option (--algo mappo or ippo), and this run is --algo {algo}",
+)
+"""MADDPG and DDPG (and the MATD3 options) learning from a replay."""

@@ -1,0 +1,67 @@
+"""What an episode adds up to and what a run logs: one definition of every episode metric,
+read by the learner families (training episodes), rollouts (evaluation) and the run folder.
+
+Shape legend: T steps, E episodes (parallel environments), N rovers; ``...`` any leading axes.
+
+Per-episode totals (:func:`episode_totals`):
+
+- ``episode_reward``: sum of every rover's reward over every step (the paper's "episode reward");
+- ``agent_rewards`` [N]: the same per rover (``agent_i_reward`` in ``metrics.csv``);
+- ``collisions``: rover-rover contacts, one per touching pair per step;
+- ``trap_contacts``: rover-trap contacts, one per (rover, trap) pair per step;
+- ``coverage_distance``: sum over POIs of the nearest rover's distance at the last step.
+
+Rollouts add ``pois_observed`` (POIs a rover came within ``observe_radius`` of at some step).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+EPISODE_METRICS = ("episode_reward", "collisions", "trap_contacts", "coverage_distance")
+"""The scalar per-episode totals a training run logs, in ``metrics.csv``'s order (after the
+per-rover ``agent_i_reward`` columns, which follow ``episode_reward``)."""
+
+
+def contact_counts(info: dict[str, jax.Array]) -> dict[str, jax.Array]:
+    """One step's contacts from :func:`~roverswarm.env.mars.step_env`'s info (any leading axes):
+    ``collisions`` (touching pairs, each counted once) and ``trap_contacts`` ((rover, trap) pairs)."""
+    return {"collisions": jnp.sum(info["collisions"], -1) / 2, "trap_contacts": jnp.sum(info["trap_contacts"], -1)}
+
+
+def shaped_rewards(rewards: jax.Array, info: dict[str, jax.Array], trap_shaping: float) -> jax.Array:
+    """The rewards a learner trains on: the environment's ``rewards`` [..., N] less
+    ``trap_shaping`` more per trap each rover touches (``--trap-shaping``). Episode rewards,
+    metrics and evaluations stay the environment's."""
+    return rewards - trap_shaping * info["trap_contacts"]
+
+
+def step_stats(rewards: jax.Array, info: dict[str, jax.Array], live: jax.Array | None = None) -> dict[str, jax.Array]:
+    """What one step [...] adds to its episode's totals: ``rewards`` [..., N], ``collisions``,
+    ``trap_contacts`` and ``coverage_distance``; with ``live`` [...] (0 or False after a
+    termination) the rewards and contacts of dead steps count nothing."""
+    stats = {"rewards": rewards, **contact_counts(info)}
+    if live is not None:
+        stats = {k: v * (live[..., None] if k == "rewards" else live) for k, v in stats.items()}
+    stats["coverage_distance"] = info["coverage_distance"]
+    return stats
+
+
+def episode_totals(steps: dict, axis: int = 0) -> dict:
+    """Per-episode totals of :func:`step_stats` stacked along the time axis ``axis`` (JAX or
+    NumPy arrays): ``episode_reward``, ``agent_rewards`` [..., N], ``collisions``,
+    ``trap_contacts`` and ``coverage_distance`` (at the last step)."""
+    rewards = steps["rewards"]
+    return {
+        "episode_reward": rewards.sum(axis=(axis, rewards.ndim - 1)),
+        "agent_rewards": rewards.sum(axis=axis),
+        "collisions": steps["collisions"].sum(axis=axis),
+        "trap_contacts": steps["trap_contacts"].sum(axis=axis),
+        "coverage_distance": steps["coverage_distance"][(slice(None),) * axis + (-1,)],
+    }
+
+
+def reduce_metric(name: str, x, axis):
+    """Aggregate a metric: ``*_max`` metrics by their maximum, the others by their mean."""
+    return x.max(axis=axis) if name.endswith("_max") else x.mean(axis=axis)

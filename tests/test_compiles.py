@@ -1,0 +1,50 @@
+"""The compiled chunk is keyed on what shapes the program: a second run in the same process
+with another seed and episode count compiles nothing new, for every learner family."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import pytest
+
+from roverswarm.learners import offpolicy, onpolicy
+from roverswarm.trainer import train
+
+COMPILE_EVENTS = ("/jax/core/compile/jaxpr_to_mlir_module_duration", "/jax/core/compile/backend_compile_duration")
+"""Lowering a program and compiling it (a program found in the persistent cache is lowered, not compiled)."""
+
+
+class Compilations:
+    """Counts the programs JAX lowers or compiles while the context is open."""
+
+    def __enter__(self):
+        self.events: list[str] = []
+        jax.monitoring.register_event_duration_secs_listener(self._record)
+        return self
+
+    def _record(self, event: str, duration: float, **kwargs) -> None:
+        if event in COMPILE_EVENTS:
+            self.events.append(event)
+
+    def __exit__(self, *exc):
+        jax.monitoring.unregister_event_duration_listener(self._record)
+
+
+@pytest.mark.parametrize("family", ["off-policy", "on-policy"])
+def test_another_seed_and_episode_count_compile_no_new_program(family, tiny_config, tiny_ppo_config):
+    off = family == "off-policy"
+    config, chunk = (tiny_config, offpolicy.run_chunk) if off else (tiny_ppo_config, onpolicy.run_chunk)
+    # a replay shorter than the run (4000 transitions): its length changes no shape
+    config = dataclasses.replace(config, episodes=200, seeds=1)
+    with Compilations() as first:
+        train(config, progress=False)
+    programs = chunk._cache_size()
+    assert first.events  # the listener sees compilations (this program is new to the process)
+    with Compilations() as second:
+        train(dataclasses.replace(config, seed=7, episodes=300), progress=False)
+    assert chunk._cache_size() == programs
+    assert second.events == []
+    with Compilations() as third:  # what does shape the program still compiles one
+        train(dataclasses.replace(config, seeds=2), progress=False)
+    assert chunk._cache_size() == programs + 1 and third.events
