@@ -161,7 +161,8 @@ def batch(worlds):
     rng = np.random.default_rng(4)
     own, tokens, mask = stack_views(worlds, rng)
     actions = rng.uniform(-1, 1, (len(worlds), N, 2)).astype(np.float32)
-    return dict(own=own, tokens=tokens, mask=mask, actions=actions, tok_actions=np.asarray(token_actions(actions, P, T)))
+    tok_actions = np.asarray(token_actions(actions, P, T))
+    return dict(own=own, tokens=tokens, mask=mask, actions=actions, tok_actions=tok_actions)
 
 
 def run_batch(apply, batch, **changes):
@@ -319,7 +320,8 @@ def test_vmap_over_views_and_over_seeds(nets, params, jitted, batch):
     batched = jitted["actor"](params["actor"], *view)
     mapped = jax.jit(jax.vmap(nets.actor, in_axes=(None, 0, 0, 0)))(params["actor"], *view)
     np.testing.assert_allclose(mapped, batched, **TOL)
-    seeds = jax.jit(jax.vmap(nets.init_actor))(jax.random.split(jax.random.PRNGKey(2), 2))
+    # two seeds' parameters stacked, as ``jax.vmap(train)(keys)`` holds them
+    seeds = jax.tree.map(lambda *x: jnp.stack(x), params["actor"], jax.jit(nets.init_actor)(jax.random.PRNGKey(2)))
     per_seed = jax.jit(jax.vmap(nets.actor, in_axes=(0, None, None, None)))(seeds, *view)
     for s in range(2):
         np.testing.assert_allclose(per_seed[s], jitted["actor"](jax.tree.map(lambda x: x[s], seeds), *view), **TOL)
@@ -400,7 +402,8 @@ def np_networks(params, batch, config: EntityConfig, **variant) -> dict:
         p = params["critic"]["params"]
         own_a = np.concatenate([own, batch["actions"][b, i]])
         tokens_a = np.concatenate([tokens, batch["tok_actions"][b, i]], axis=-1)
-        out["critic"].append(np_head(p["head"], np_encoder(p["encoder"], own_a, tokens_a, mask, config, **variant), config))
+        x = np_encoder(p["encoder"], own_a, tokens_a, mask, config, **variant)
+        out["critic"].append(np_head(p["head"], x, config))
     shape = batch["mask"].shape[:2]
     return dict(
         encoder=np.reshape(out["encoder"], (*shape, -1)),

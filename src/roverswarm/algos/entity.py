@@ -154,6 +154,7 @@ class _EntityHeaded(nn.Module):
     hidden: tuple[int, ...] = (64, 64)
 
     def encoder(self) -> EntityEncoder:
+        """The encoder submodule (named ``encoder`` in the parameters)."""
         return EntityEncoder(self.dim, self.heads, self.layers, self.layer_norm, name="encoder")
 
 
