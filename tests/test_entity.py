@@ -13,7 +13,7 @@ tokens) in every padded slot. The tests check that
   the same outputs as in its own;
 * a NumPy reference written from the module's equations (loops over views, heads, queries,
   with the softmax over the real tokens only) gives the same encodings, actions, values and
-  Q-values within 1e-4, on the flax parameters;
+  Q-values within 1e-4, on the flax parameters (perturbed: no zero bias hides a mistake);
 * the checks have teeth: unmasked inputs, the reference without masking or without the
   1/sqrt(d) scale, all disagree; the outputs differ from rover to rover.
 """
@@ -115,9 +115,13 @@ def nets():
 
 @pytest.fixture(scope="module")
 def params(nets):
-    keys = jax.random.split(jax.random.PRNGKey(0), 3)
-    inits = (nets.init_actor, nets.init_value, nets.init_critic)
-    return {name: jax.jit(init)(key) for name, init, key in zip(("actor", "value", "critic"), inits, keys)}
+    """Initialised, then every entry perturbed: at init the biases are zero and the LayerNorms
+    the identity, which would hide a missing bias or a padded token's embedding."""
+    keys = dict(zip(("actor", "value", "critic"), jax.random.split(jax.random.PRNGKey(0), 3)))
+    inits = dict(actor=nets.init_actor, value=nets.init_value, critic=nets.init_critic)
+    rng = np.random.default_rng(0)
+    perturb = lambda x: x + 0.2 * rng.normal(size=x.shape).astype(np.float32)  # noqa: E731
+    return {name: jax.tree.map(perturb, jax.jit(init)(keys[name])) for name, init in inits.items()}
 
 
 @pytest.fixture(scope="module")
