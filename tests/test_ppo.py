@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from roverswarm.learners import onpolicy
-from roverswarm.algos import ppo
+from roverswarm.algos import ppo, ppo_networks
 from roverswarm.algos.normalize import init_obs_norm, update_obs_norm
 from roverswarm.config import MAPPO, TrainConfig, validate, with_options
 from roverswarm.env.mars import EnvParams, observation_size
@@ -168,20 +168,20 @@ def test_inputs_and_deterministic_actions(tiny_ppo_config):
     params = get_scenario("paper-3")
     n, o = params.num_rovers, observation_size(params)
     obs = jax.random.normal(jax.random.PRNGKey(0), (5, n, o))
-    inputs = ppo.actor_inputs(obs)
+    inputs = ppo_networks.actor_inputs(obs)
     assert inputs.shape == (5, n, o + n)
     np.testing.assert_array_equal(inputs[..., :o], obs)
     np.testing.assert_array_equal(inputs[:, 1, o:], np.tile([0, 1, 0], (5, 1)))
-    mappo = ppo.critic_inputs("mappo", obs)
+    mappo = ppo_networks.critic_inputs("mappo", obs)
     assert mappo.shape == (5, n, n * o + n)
     np.testing.assert_array_equal(mappo[:, 2, : n * o], obs.reshape(5, -1))  # rover 2 sees every rover
     np.testing.assert_array_equal(mappo[:, 2, n * o :], np.tile([0, 0, 1], (5, 1)))
-    np.testing.assert_array_equal(ppo.critic_inputs("ippo", obs), inputs)
+    np.testing.assert_array_equal(ppo_networks.critic_inputs("ippo", obs), inputs)
 
     config = tiny_ppo_config
     state = ppo.init_ppo(jax.random.PRNGKey(0), config, n, o)
     actions = ppo.act(config.learner, config.ppo, state.actor, 10 * obs)
-    mean, _ = ppo.networks(config.learner, config.ppo)[0].apply(state.actor, ppo.actor_inputs(10 * obs))
+    mean, _ = ppo_networks.networks(config.learner, config.ppo)[0].apply(state.actor, ppo_networks.actor_inputs(10 * obs))
     assert actions.shape == (5, n, 2)
     np.testing.assert_array_equal(actions, np.clip(mean, -1, 1))
 

@@ -36,10 +36,11 @@ class ScenariosCommand:
 class TrainCommand:
     """Train MADDPG, DDPG, MAPPO or IPPO on a scenario (seeds vmapped); writes metrics, checkpoints, curves."""
 
-    preset: Literal["default", "reference", "swarm", "mappo", "ippo"] = "default"
+    preset: Literal["default", "reference", "swarm", "mappo", "ippo", "anysize"] = "default"
     """Starting values of every option: `default` (MADDPG tuned to learn), `reference` (the
     reference MADDPG code's), `swarm` (shared networks with rover ids, MATD3, nearest-first view; provisional,
-    see docs/results/swarm), `mappo` or `ippo` (PPO). Options given beside it change them."""
+    see docs/results/swarm), `mappo` or `ippo` (PPO), `anysize` (MAPPO with entity networks on
+    paper-2..10: one policy for every swarm size). Options given beside it change them."""
     config: TrainConfig = field(default_factory=TrainConfig)
     out: Path | None = None
     """Output folder (config.json, metrics.csv, tb/, checkpoint.npz, learning_curve.png)."""
@@ -100,8 +101,9 @@ def print_table(title: str, rows: list[dict[str, object]], left: tuple[str, ...]
 def run_evaluate(cmd: EvaluateConfig) -> None:
     from roverswarm.evaluate import evaluate_run
 
-    rows = evaluate_run(cmd.run, cmd.episodes, cmd.seed, cmd.sub_policies, cmd.partners)
-    print_table(f"{cmd.run}: {cmd.episodes} deterministic episodes, seed {cmd.seed}", rows, ("policy",))
+    rows = evaluate_run(cmd.run, cmd.episodes, cmd.seed, cmd.sub_policies, cmd.partners, cmd.scenario)
+    keys = ("scenario", "policy") if "scenario" in rows[0] else ("policy",)
+    print_table(f"{cmd.run}: {cmd.episodes} deterministic episodes, seed {cmd.seed}", rows, keys)
 
 
 def run_scenarios(cmd: ScenariosCommand) -> None:

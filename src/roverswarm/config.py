@@ -20,7 +20,7 @@ from roverswarm.algos.ppo import PPOConfig
 from roverswarm.buffers.base import ReplayConfig
 from roverswarm.env.mars import EnvParams
 from roverswarm.env.missions import load_mission, parse_mission_text, read_mission_text
-from roverswarm.env.scenarios import get_scenario
+from roverswarm.env.scenarios import get_scenario, padded_scenario, range_sizes
 from roverswarm.errors import UserError, require
 from roverswarm.errors import require_finite as _finite
 from roverswarm.errors import require_positive as _positive
@@ -36,7 +36,8 @@ class TrainConfig:
     same compute), noise 0.2; :data:`REFERENCE` holds the reference values."""
 
     scenario: str = DEFAULT_SCENARIO
-    """Scenario preset (see `roverswarm scenarios`)."""
+    """Scenario (see `roverswarm scenarios`): a preset, paper-N, or a range paper-A..B (or list
+    paper-A,B,C) whose every episode draws its swarm size (needs --network entity)."""
     mission: str | None = None
     """Mission file (YAML/JSON) to train on instead of --scenario (give one of them): its
     POIs and traps fixed, rover starts drawn anywhere in the map, fixed-length episodes.
@@ -72,6 +73,12 @@ class TrainConfig:
     """Episodes per metrics row (and per jitted chunk)."""
     checkpoint_every: int = 10
     """Chunks (of --log-every episodes) between checkpoints; one is always written at the end."""
+    fail_rate: float = 0.0
+    """Probability per training episode that one rover, drawn uniformly, fails at a uniform
+    step (it stops where it is; see docs/environment.md#rover-failures). Evaluation has none."""
+    size_curriculum: int = 0
+    """With a range scenario: the largest swarm size drawn grows linearly from the range's
+    smallest to its largest over this many episodes; 0 draws every size from the start."""
     checkpoint_minutes: float = 10.0
     """A checkpoint is also written at the end of the first chunk that finishes this many
     minutes after the last one, so a killed long run loses at most about that much training;
@@ -120,12 +127,22 @@ environments, tanh 2 x 64 networks, on the nearest-first view."""
 IPPO = dataclasses.replace(MAPPO, learner=dataclasses.replace(MAPPO.learner, algo="ippo"))
 """IPPO: as :data:`MAPPO` with a local value V(o_i, i)."""
 
+ANYSIZE = dataclasses.replace(
+    MAPPO,
+    scenario="paper-2..10",
+    learner=dataclasses.replace(MAPPO.learner, network="entity", entity_dim=32, entity_heads=2, entity_layers=1),
+)
+"""One policy for every swarm size: MAPPO with entity networks (attention over the other
+rovers, POIs and traps, no rover ids) trained on swarms of 2 to 10 rovers, a size drawn per
+episode (``docs/results/any-size/``)."""
+
 PRESETS: dict[str, TrainConfig] = {
     "default": TrainConfig(),
     "reference": REFERENCE,
     "swarm": SWARM,
     "mappo": MAPPO,
     "ippo": IPPO,
+    "anysize": ANYSIZE,
 }
 """Named starting points of `roverswarm train --preset`; other options change them."""
 
@@ -173,7 +190,14 @@ def validate(config: TrainConfig) -> EnvParams:
         f"--scenario {config.scenario} and --mission: the mission file sets the layout and the number "
         "of rovers; give one of them",
     )
-    if config.mission is None:
+    if config.mission is None and range_sizes(config.scenario) is not None:
+        require(
+            config.learner.network == "entity",
+            f"--scenario {config.scenario} draws a swarm size per episode: it needs --network entity "
+            "(networks that serve any size; start from --preset anysize)",
+        )
+        params = padded_scenario(config.scenario)
+    elif config.mission is None:
         params = get_scenario(config.scenario)
     elif config.mission_text is None:
         params = load_mission(config.mission).training_params()
@@ -195,6 +219,19 @@ def validate(config: TrainConfig) -> EnvParams:
     _positive(replay, ("batch_size", "buffer_size", "refresh_every"))
     require(config.warmup >= 0, f"--warmup must be >= 0, got {config.warmup}")
     _finite(config.checkpoint_minutes, 0, "checkpoint-minutes")
+    require(0 <= config.fail_rate <= 1, f"--fail-rate must be in [0, 1] (a probability per episode), got {config.fail_rate}")
+    require(config.size_curriculum >= 0, f"--size-curriculum must be >= 0 episodes, got {config.size_curriculum}")
+    require(
+        config.size_curriculum == 0 or (config.mission is None and range_sizes(config.scenario) is not None),
+        "--size-curriculum needs a range of swarm sizes, such as --scenario paper-2..10",
+    )
+    entity = config.learner
+    require(
+        entity.entity_dim >= 1 and entity.entity_heads >= 1 and entity.entity_dim % entity.entity_heads == 0,
+        f"--entity-heads ({entity.entity_heads}) must be >= 1 and divide --entity-dim ({entity.entity_dim})",
+    )
+    require(entity.entity_layers >= 0, f"--entity-layers must be >= 0, got {entity.entity_layers}")
+    require(entity.entity_nearest >= 0, f"--entity-nearest must be >= 0 (0: every entity), got {entity.entity_nearest}")
     require(
         replay.batch_size <= replay.buffer_size,
         f"--batch-size ({replay.batch_size}) must not exceed --buffer-size ({replay.buffer_size})",

@@ -13,10 +13,12 @@ from typing import Literal
 import jax
 import tyro
 
+from roverswarm.env.mars import EnvParams
+from roverswarm.env.scenarios import get_scenario, range_sizes, scenario_sizes
 from roverswarm.errors import require
 from roverswarm.policies import ORACLE, RANDOM
 from roverswarm.rollout import normalized_score, rollout
-from roverswarm.runs import Partners, Run, SubPolicies
+from roverswarm.runs import Partners, Run, SubPolicies, load_policy
 
 
 @dataclass(frozen=True)
@@ -32,6 +34,10 @@ class EvaluateConfig:
     sub_policies: Literal["random", "each"] = "random"
     """Runs with --ensemble K: `random` draws every agent's sub-policy per episode, as in
     training; `each` runs sub-policy k of all agents, for every k."""
+    scenario: str | None = None
+    """Evaluate on this scenario instead of the run's own: a policy of --network entity on any
+    paper-N or range (paper-2..32: every size of it), any other on its own numbers of rovers,
+    POIs and traps. Default: the run's scenario (every size of a range)."""
     partners: Literal["own", "other-seeds"] = "own"
     """`own`: each seed's agents together; `other-seeds`: agent i of seed s beside the other
     agents of seeds s + 1, s + 2, ... (mod seeds), partners it never trained with (each rover
@@ -40,23 +46,43 @@ class EvaluateConfig:
 
 
 def evaluate_run(
-    out, episodes: int = 1000, seed: int = 0, sub_policies: SubPolicies = "random", partners: Partners = "own"
+    out,
+    episodes: int = 1000,
+    seed: int = 0,
+    sub_policies: SubPolicies = "random",
+    partners: Partners = "own",
+    scenario: str | None = None,
 ) -> list[dict[str, float | str]]:
     """Deterministic episodes of every seed's trained policy in run folder ``out``, beside the
     random and oracle policies on the same episodes (same layouts), with the normalised score.
     Runs with policy ensembles, and ``partners``, work as :meth:`Run.policies` says; the policy
-    names say which.
+    names say which. ``scenario``: see :class:`EvaluateConfig`.
 
-    Returns one row per policy: ``policy``, the :meth:`EpisodeStats.summary` metrics and
-    ``normalized_score``.
+    Returns one row per policy (and size): ``policy``, the :meth:`EpisodeStats.summary`
+    metrics and ``normalized_score``; with several sizes, or a ``scenario``, also ``scenario``.
     """
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
     run = Run(out)
     key = jax.random.PRNGKey(seed)
     policies = run.policies(sub_policies, seed, partners)
-    results = {p.name: rollout(p, key, run.params, episodes).stats.summary() for p in (RANDOM, ORACLE, *policies)}
-    low, high = results["random"]["episode_reward"], results["oracle"]["episode_reward"]
-    return [
-        {"policy": name, **summary, "normalized_score": normalized_score(summary["episode_reward"], low, high)}
-        for name, summary in results.items()
-    ]
+    named = scenario is not None or (run.config.mission is None and range_sizes(run.config.scenario) is not None)
+    rows = []
+    for name, params in _targets(run, scenario):
+        results = {p.name: rollout(p, key, params, episodes).stats.summary() for p in (RANDOM, ORACLE, *policies)}
+        low, high = results["random"]["episode_reward"], results["oracle"]["episode_reward"]
+        for policy, summary in results.items():
+            score = normalized_score(summary["episode_reward"], low, high)
+            rows.append({**({"scenario": name} if named else {}), "policy": policy, **summary, "normalized_score": score})
+    return rows
+
+
+def _targets(run: Run, scenario: str | None) -> list[tuple[str, EnvParams]]:
+    """(name, params) of every size to evaluate ``run`` on (see :class:`EvaluateConfig`)."""
+    name = run.config.scenario if scenario is None and run.config.mission is None else scenario
+    if name is None:
+        return [(run.config.env_name(), run.params)]
+    sizes = scenario_sizes(name)
+    targets = [(name, get_scenario(name))] if len(sizes) == 1 else [(f"paper-{n}", get_scenario(f"paper-{n}")) for n in sizes]
+    for target, params in targets:
+        load_policy(str(run.folder), params.replace(nearest_first=run.params.nearest_first), f"scenario '{target}'")
+    return [(target, params.replace(nearest_first=run.params.nearest_first)) for target, params in targets]

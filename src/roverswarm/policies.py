@@ -221,10 +221,12 @@ REFERENCE_POLICIES: dict[str, Policy] = {p.name: p for p in (RANDOM, ORACLE)}
 
 
 @functools.lru_cache(maxsize=None)
-def _trained_act(act: Callable, acting: Hashable, nearest_first: bool) -> ActFn:
+def _trained_act(act: Callable, acting: Hashable, nearest_first: bool, view: Callable | None) -> ActFn:
     # one function object per learner config, so rollouts of new weights reuse the compiled code
     def act_fn(key, obs, state, plan, weights, params):
-        if params.nearest_first != nearest_first:  # an environment showing another view than training's
+        if view is not None:  # a view of its own (e.g. entities), for any swarm size
+            obs = view(state, params)
+        elif params.nearest_first != nearest_first:  # an environment showing another view than training's
             obs = observe(state, params.replace(nearest_first=nearest_first))
         return act(acting, weights, obs, plan)  # plan: with ensembles, every agent's sub-policy [N]
 
@@ -280,7 +282,8 @@ def trained_policy(
     learner = config.learner
     weights = (actor_params, obs_norm)
     family = learner_family(learner.algo)
-    act_fn = _trained_act(family.act, family.acting(config), config.nearest_first)
+    acting = family.acting(config)
+    act_fn = _trained_act(family.act, acting, config.nearest_first, family.view(acting))
     if learner.ensemble == 1:
         return Policy(name, act_fn, weights=weights)
     return Policy(name, act_fn, _sub_policy_plan(learner.ensemble, sub_policy, seed), weights=weights)

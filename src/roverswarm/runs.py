@@ -309,6 +309,12 @@ class Run:
         template = family.learners(family.configure(self.config, self.params), self.params)
         return _restore(template, read_arrays(self.folder / CHECKPOINT, "learner/"), prefix="learner/")
 
+    @property
+    def any_size(self) -> bool:
+        """Whether this run's policies drive any number of rovers (an entity network)."""
+        family = learner_family(self.config.learner.algo)
+        return family.view(family.acting(self.config)) is not None
+
     def policy(self, seed: int = 0) -> Policy:
         """Seed ``seed``'s deterministic policy (with ensembles, a sub-policy per agent and episode)."""
         require(
@@ -366,7 +372,8 @@ def load_policy(spec: str, params: EnvParams, target: str, seed: int = 0, hint: 
     run = Run(spec)
     trained = run.params
     require(
-        (trained.num_rovers, trained.num_pois, trained.num_traps)
+        run.any_size
+        or (trained.num_rovers, trained.num_pois, trained.num_traps)
         == (params.num_rovers, params.num_pois, params.num_traps),
         f"--policy: '{spec}' was trained for {count_text(trained)} ({run.config.env_name()}); {target} has "
         f"{count_text(params)}.{' ' + hint if hint else ''}",

@@ -72,13 +72,9 @@ import jax
 import jax.numpy as jnp
 
 from roverswarm.algos.networks import MLP
+from roverswarm.env.entities import OWN_FEATURES, TOKEN_FEATURES
 from roverswarm.env.mars import ACTION_SIZE, other_rovers
 
-OWN_FEATURES = 4
-"""Own features of a rover: velocity (2), position (2)."""
-TOKEN_FEATURES = 9
-"""Features of one token: relative position (2), relative velocity (2), type one-hot
-(rover, POI, trap), radius, flag (POI: observed this episode; rover: failed)."""
 NEG = -1e9
 """Attention logit of a padded token: exp(NEG - any real logit) is exactly 0 in float32."""
 

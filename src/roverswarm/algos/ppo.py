@@ -45,12 +45,9 @@ and L_V is computed on standardised values and targets.
 
 from __future__ import annotations
 
-import math
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
-import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import optax
@@ -58,7 +55,7 @@ from flax import struct
 
 from roverswarm.algos.learner import AlgoConfig
 from roverswarm.algos.normalize import ObsNorm, init_obs_norm
-from roverswarm.env.mars import ACTION_SIZE
+from roverswarm.algos.ppo_networks import policy_networks
 
 
 # ----------------------------------------------------------------------------- configuration
@@ -111,76 +108,15 @@ class OnPolicyConfig:
     seeds: int
     num_envs: int
     log_every: int
+    sizes: tuple[int, ...] | None = None
+    """Swarm sizes each environment draws from per episode (a range scenario); None: one size."""
+    size_curriculum: int = 0
+    fail_rate: float = 0.0
 
 
 def updates_per_iteration(config: PPOConfig) -> int:
     """Optimiser steps of each network per iteration: epochs x minibatches."""
     return config.epochs * config.minibatches
-
-
-# ----------------------------------------------------------------------------- networks
-
-
-_ACTIVATIONS = {"tanh": nn.tanh, "relu": nn.relu}
-
-
-class MLP(nn.Module):
-    """Dense layers of sizes ``hidden`` with ``activation``, then a linear output of size
-    ``out``; orthogonal initialisation (gain sqrt(2) hidden, ``out_gain`` output), zero biases."""
-
-    hidden: Sequence[int]
-    out: int
-    activation: str
-    out_gain: float
-
-    @nn.compact
-    def __call__(self, x: jax.Array) -> jax.Array:
-        for width in self.hidden:
-            x = nn.Dense(width, kernel_init=nn.initializers.orthogonal(math.sqrt(2)))(x)
-            x = _ACTIVATIONS[self.activation](x)
-        return nn.Dense(self.out, kernel_init=nn.initializers.orthogonal(self.out_gain))(x)
-
-
-class GaussianActor(nn.Module):
-    """[..., O + N] -> mean [..., A] (linear, unbounded) and a state-independent log-std [A]."""
-
-    hidden: Sequence[int]
-    activation: str
-    init_log_std: float
-
-    @nn.compact
-    def __call__(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
-        mean = MLP(self.hidden, ACTION_SIZE, self.activation, 0.01)(x)
-        log_std = self.param("log_std", nn.initializers.constant(self.init_log_std), (ACTION_SIZE,))
-        return mean, log_std
-
-
-def networks(learner: AlgoConfig, config: PPOConfig) -> tuple[GaussianActor, MLP]:
-    """The (actor, value) modules: hidden widths from the learner, the rest from ``config``."""
-    actor = GaussianActor(learner.hidden, config.activation, config.init_log_std)
-    return actor, MLP(learner.hidden, 1, config.activation, 1.0)
-
-
-def _one_hot_rovers(obs: jax.Array) -> jax.Array:
-    """[..., N, X] -> [..., N, X + N]: each rover's row followed by its one-hot index."""
-    n = obs.shape[-2]
-    return jnp.concatenate([obs, jnp.broadcast_to(jnp.eye(n, dtype=obs.dtype), (*obs.shape[:-1], n))], axis=-1)
-
-
-def actor_inputs(obs: jax.Array) -> jax.Array:
-    """What the shared actor sees: [..., N, O] -> [..., N, O + N] (own observation, one-hot index)."""
-    return _one_hot_rovers(obs)
-
-
-def critic_inputs(algo: str, obs: jax.Array) -> jax.Array:
-    """What the shared value network sees for each rover: [..., N, O] -> [..., N, D].
-
-    MAPPO: every rover's observation (flattened, the same for all rovers) and the rover's
-    one-hot index; IPPO: the actor's input."""
-    if algo == "ippo":
-        return _one_hot_rovers(obs)
-    *batch, n, o = obs.shape
-    return _one_hot_rovers(jnp.broadcast_to(obs.reshape(*batch, 1, n * o), (*batch, n, n * o)))
 
 
 def gaussian_log_prob(actions: jax.Array, mean: jax.Array, log_std: jax.Array) -> jax.Array:
@@ -194,9 +130,11 @@ def gaussian_entropy(log_std: jax.Array) -> jax.Array:
     return jnp.sum(log_std + 0.5 * jnp.log(2 * jnp.pi * jnp.e), axis=-1)
 
 
-def act(learner: AlgoConfig, config: PPOConfig, actor_params, obs: jax.Array) -> jax.Array:
-    """Deterministic actions clip(mean, -1, 1) of all rovers: [..., N, O] -> [..., N, A]."""
-    mean, _ = networks(learner, config)[0].apply(actor_params, actor_inputs(obs))
+def act(learner: AlgoConfig, config: PPOConfig, actor_params, obs) -> jax.Array:
+    """Deterministic actions clip(mean, -1, 1) of all rovers: observations of the network kind's
+    view ([..., N, O], or an entity view) -> [..., N, A]."""
+    nets = policy_networks(learner, config)
+    mean, _ = nets.policy(actor_params, nets.actor_inputs(obs))
     return jnp.clip(mean, -1.0, 1.0)
 
 
@@ -230,13 +168,10 @@ def optimizers(config: OnPolicyConfig) -> tuple[optax.GradientTransformation, op
 
 
 def init_ppo(key: jax.Array, config: OnPolicyConfig, num_rovers: int, obs_size: int) -> PPOState:
-    """Fresh networks of one seed."""
-    actor_net, critic_net = networks(config.learner, config.ppo)
+    """Fresh networks of one seed (``num_rovers`` and ``obs_size`` shape the flat view's
+    networks; an entity network's parameters depend on neither)."""
     actor_opt, critic_opt = optimizers(config)
-    k_actor, k_critic = jax.random.split(key)
-    obs = jnp.zeros((num_rovers, obs_size))
-    actor = actor_net.init(k_actor, actor_inputs(obs))
-    critic = critic_net.init(k_critic, critic_inputs(config.learner.algo, obs))
+    actor, critic = policy_networks(config.learner, config.ppo).init(key, num_rovers, obs_size)
     return PPOState(
         actor=actor,
         critic=critic,
@@ -286,8 +221,8 @@ def gae(
 class Batch:
     """Samples of the update, one per rover and step, flattened: leading [B] (or a minibatch)."""
 
-    actor_inputs: jax.Array  # [B, O + N]
-    critic_inputs: jax.Array  # [B, D]
+    actor_inputs: Any  # [B, ...] what the actor sees of each sample (e.g. [B, O + N])
+    critic_inputs: Any  # [B, ...] what the value network sees (e.g. [B, D])
     actions: jax.Array  # [B, A] unclipped Gaussian samples
     log_probs: jax.Array  # [B] under the rollout's policy
     advantages: jax.Array  # [B]
@@ -342,14 +277,14 @@ def ppo_loss(
 def update_minibatch(config: OnPolicyConfig, state: PPOState, batch: Batch) -> tuple[PPOState, dict[str, jax.Array]]:
     """One gradient step of the actor and of the value network on ``batch``; returns the
     state (networks and optimiser states changed) and :func:`ppo_loss`'s parts."""
-    actor_net, critic_net = networks(config.learner, config.ppo)
+    nets = policy_networks(config.learner, config.ppo)
     actor_opt, critic_opt = optimizers(config)
 
     def loss(actor, critic):
-        mean, log_std = actor_net.apply(actor, batch.actor_inputs)
+        mean, log_std = nets.policy(actor, batch.actor_inputs)
         log_probs = gaussian_log_prob(batch.actions, mean, log_std)
         entropy = jnp.broadcast_to(gaussian_entropy(log_std), log_probs.shape)
-        values = critic_net.apply(critic, batch.critic_inputs)[..., 0]
+        values = nets.value(critic, batch.critic_inputs)
         return ppo_loss(config.ppo, log_probs, entropy, values, batch)
 
     (_, parts), (actor_grads, critic_grads) = jax.value_and_grad(loss, argnums=(0, 1), has_aux=True)(

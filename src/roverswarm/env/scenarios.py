@@ -103,6 +103,12 @@ def scenario_sizes(name: str) -> tuple[int, ...]:
     return sizes
 
 
+def range_sizes(name: str) -> tuple[int, ...] | None:
+    """The sizes of a range or list scenario (``paper-2..10``); None for a single size."""
+    sizes = scenario_sizes(name)
+    return sizes if len(sizes) > 1 else None
+
+
 def get_scenario(name: str) -> EnvParams:
     """The validated :class:`EnvParams` of one scenario ``name`` (a preset or ``paper-N``);
     :class:`UserError` if unknown, or if it is a range (see :func:`padded_scenario`)."""
@@ -132,9 +138,11 @@ def sized(params: EnvParams, n) -> EnvParams:
     return params.replace(active_rovers=n, active_pois=n, active_traps=n, map_size=paper_map_size(n))
 
 
-def draw_sizes(key: jax.Array, sizes: tuple[int, ...], count: int) -> jax.Array:
-    """[count] swarm sizes drawn uniformly from ``sizes``."""
-    return jnp.asarray(sizes, jnp.int32)[jax.random.randint(key, (count,), 0, len(sizes))]
+def draw_sizes(key: jax.Array, sizes: tuple[int, ...], count: int, cap=None) -> jax.Array:
+    """[count] swarm sizes drawn uniformly from ``sizes`` (ascending); with ``cap`` (traced),
+    from those at most ``cap`` (the smallest if none is)."""
+    choices = len(sizes) if cap is None else jnp.maximum(jnp.sum(jnp.asarray(sizes) <= cap), 1)
+    return jnp.asarray(sizes, jnp.int32)[jax.random.randint(key, (count,), 0, choices)]
 
 
 def scenario_table() -> list[dict[str, object]]:

@@ -83,6 +83,10 @@ class Family:
     act: Callable[[Hashable, Any, jax.Array, Any], jax.Array]
     """(acting, weights, obs [..., N, O], plan) -> deterministic actions [..., N, A]; ``plan``:
     with ensembles, every agent's sub-policy [..., N]."""
+    view: Callable[[Hashable], Callable[[Any, EnvParams], Any] | None]
+    """acting -> the observation function :attr:`act` needs, (state, params) -> obs, when it is
+    not the environment's flat view; such a policy serves any swarm size (None: the flat
+    view, tied to the sizes it was trained on)."""
     weights: Callable[[Any], tuple[Any, Any]]
     """Learner state -> the ``weights`` of :attr:`act`: (actor parameters, observation
     normaliser or None)."""

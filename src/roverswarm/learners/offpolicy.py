@@ -38,6 +38,7 @@ from roverswarm.buffers.base import (
     recent_indices,
 )
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, reset, step_env
+from roverswarm.errors import require
 from roverswarm.learners.base import Family, Runner, seed_keys, start_runner
 from roverswarm.metrics import episode_totals, reduce_metric, shaped_rewards, step_stats
 
@@ -287,15 +288,26 @@ def _act(learner: AlgoConfig, weights, obs: jax.Array, plan) -> jax.Array:
     return act(learner, actor, obs, plan, obs_norm)
 
 
+def check(config, params: EnvParams) -> None:
+    """What the off-policy family cannot do yet (the replay's and MADDPG's options are checked
+    in :func:`roverswarm.config.validate`)."""
+    require(
+        config.learner.network == "mlp" and config.fail_rate == 0,
+        f"--network {config.learner.network} / --fail-rate {config.fail_rate}: --algo {config.learner.algo} has "
+        "only the flat view's networks and no failures yet; use --algo mappo or ippo (--preset anysize)",
+    )
+
+
 FAMILY = Family(
     name="off-policy",
     configure=configure,
-    check=lambda config, params: None,  # the replay's and MADDPG's options: roverswarm.config.validate
+    check=check,
     init=init,
     run_chunk=run_chunk,
     learners=learners,
     acting=lambda config: config.learner,
     act=_act,
+    view=lambda acting: None,
     weights=lambda state: (state.actor, state.obs_norm),
     metric_names=metric_names,
     replay=True,

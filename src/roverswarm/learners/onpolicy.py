@@ -14,6 +14,7 @@ rover, then ``epochs`` passes over the B samples in ``minibatches`` shuffled min
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 from functools import partial
 
 import jax
@@ -28,16 +29,15 @@ from roverswarm.algos.ppo import (
     PPOConfig,
     PPOState,
     act,
-    actor_inputs,
-    critic_inputs,
     gae,
     gaussian_log_prob,
     init_ppo,
-    networks,
     update_minibatch,
     updates_per_iteration,
 )
+from roverswarm.algos.ppo_networks import policy_networks
 from roverswarm.env.mars import EnvParams, observation_size, reset, step_env
+from roverswarm.env.scenarios import draw_sizes, range_sizes, sized
 from roverswarm.errors import require, require_finite, require_positive
 from roverswarm.learners.base import Family, Runner, no_replay, seed_keys, start_runner
 from roverswarm.metrics import episode_totals, shaped_rewards, step_stats
@@ -45,7 +45,20 @@ from roverswarm.metrics import episode_totals, shaped_rewards, step_stats
 PPO_METRICS = ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction")
 """Per-update metrics of --algo mappo/ippo (means over the chunk's updates)."""
 
-PPO_USES = ("algo", "actor_lr", "critic_lr", "gamma", "grad_clip", "hidden", "trap_shaping")
+PPO_USES = (
+    "algo",
+    "actor_lr",
+    "critic_lr",
+    "gamma",
+    "grad_clip",
+    "hidden",
+    "trap_shaping",
+    "network",
+    "entity_dim",
+    "entity_heads",
+    "entity_layers",
+    "entity_nearest",
+)
 """The learner options PPO reads; the other ones are the off-policy family's."""
 
 
@@ -53,14 +66,15 @@ PPO_USES = ("algo", "actor_lr", "critic_lr", "gamma", "grad_clip", "hidden", "tr
 class Trajectory:
     """E episodes of T steps of one seed: leading [T, E]."""
 
-    obs: jax.Array  # [T, E, N, O]
+    obs: Any  # [T, E, N, O], or an entity view [T, E, N, ...]
     actions: jax.Array  # [T, E, N, A] unclipped samples
     log_probs: jax.Array  # [T, E, N]
     rewards: jax.Array  # [T, E, N], 0 after a termination
-    next_obs: jax.Array  # [T, E, N, O]
+    next_obs: Any  # as obs
     terminated: jax.Array  # [T, E] bool
     truncated: jax.Array  # [T, E] bool
     mask: jax.Array  # [T, E] float, 1 until (and including) the terminating step
+    rovers: jax.Array  # [T, E, N] float, 1 for a rover that exists (all of them unless sizes are mixed)
 
 
 def check(config, params: EnvParams) -> None:
@@ -84,8 +98,10 @@ def check(config, params: EnvParams) -> None:
 
 
 def configure(config, params: EnvParams) -> OnPolicyConfig:
-    """The on-policy config of run ``config`` (a ``TrainConfig``)."""
-    return OnPolicyConfig(**{f.name: getattr(config, f.name) for f in dataclasses.fields(OnPolicyConfig)})
+    """The on-policy config of run ``config`` (a ``TrainConfig``): its fields of the same
+    names, and the swarm sizes its scenario draws from."""
+    fields = {f.name: getattr(config, f.name) for f in dataclasses.fields(OnPolicyConfig) if f.name != "sizes"}
+    return OnPolicyConfig(**fields, sizes=None if config.mission is not None else range_sizes(config.scenario))
 
 
 def init(config: OnPolicyConfig, params: EnvParams, seed: int) -> Runner:
@@ -106,27 +122,54 @@ def _where_env(done: jax.Array, old, new):
     return jax.tree.map(lambda o, n: jnp.where(done.reshape(-1, *([1] * (n.ndim - 1))), o, n), old, new)
 
 
+def size_cap(config: OnPolicyConfig, episodes: jax.Array) -> jax.Array:
+    """The largest swarm size drawn after ``episodes`` episodes: with --size-curriculum E, it
+    grows linearly from the range's smallest to its largest over the first E episodes."""
+    low, high = config.sizes[0], config.sizes[-1]
+    if config.size_curriculum == 0:
+        return jnp.asarray(high)
+    return low + jnp.minimum(episodes / config.size_curriculum, 1.0) * (high - low)
+
+
+def _reset_all(config: OnPolicyConfig, params: EnvParams, key: jax.Array, episodes: jax.Array):
+    """E fresh episodes: of one size, or each of a size drawn from ``config.sizes`` (up to
+    :func:`size_cap`); with --fail-rate, one rover may fail in each."""
+    if config.fail_rate > 0:
+        params = params.replace(fail_rate=config.fail_rate)
+    k_sizes, k_reset = jax.random.split(key)
+    keys = jax.random.split(k_reset, config.num_envs)
+    if config.sizes is None:
+        return jax.vmap(reset, in_axes=(0, None))(keys, params)[1]
+    counts = draw_sizes(k_sizes, config.sizes, config.num_envs, size_cap(config, episodes))
+    return jax.vmap(lambda k, n: reset(k, sized(params, n)))(keys, counts)[1]
+
+
 def collect(
-    config: OnPolicyConfig, params: EnvParams, actor, key: jax.Array
+    config: OnPolicyConfig, params: EnvParams, actor, key: jax.Array, episodes: jax.Array | int = 0
 ) -> tuple[Trajectory, dict[str, jax.Array]]:
-    """E fresh episodes of T steps of one seed with the stochastic policy ``actor``.
+    """E fresh episodes of T steps of one seed with the stochastic policy ``actor``, after
+    ``episodes`` episodes of training (the size curriculum reads it).
 
     After a termination (mission mode) an episode stands still and its steps are masked out.
     Returns the trajectory [T, E, ...] and per-episode stats [E], as the MADDPG trainer's:
     ``episode_reward``, ``agent_rewards`` [E, N], ``collisions``, ``trap_contacts`` and
     ``coverage_distance`` (at the last step).
     """
-    actor_net = networks(config.learner, config.ppo)[0]
+    nets = policy_networks(config.learner, config.ppo)
+    observe_all = jax.vmap(nets.observe, in_axes=(0, None))
     k_reset, k_steps = jax.random.split(key)
-    obs, env_state = jax.vmap(reset, in_axes=(0, None))(jax.random.split(k_reset, config.num_envs), params)
+    env_state = _reset_all(config, params, k_reset, episodes)
+    obs = observe_all(env_state, params)
+    exists = jnp.ones((config.num_envs, params.num_rovers)) if env_state.rover_mask is None else env_state.rover_mask
 
     def body(carry, step_key):
         obs, env_state, done = carry
-        mean, log_std = actor_net.apply(actor, actor_inputs(obs))
+        mean, log_std = nets.policy(actor, nets.actor_inputs(obs))
         actions = mean + jnp.exp(log_std) * jax.random.normal(step_key, mean.shape)
-        next_obs, next_state, rewards, terminated, truncated, info = jax.vmap(step_env, in_axes=(0, 0, None))(
+        _, next_state, rewards, terminated, truncated, info = jax.vmap(step_env, in_axes=(0, 0, None))(
             env_state, jnp.clip(actions, -1.0, 1.0), params
         )
+        next_obs = observe_all(next_state, params)
         live = ~done
         step = Trajectory(
             obs=obs,
@@ -137,6 +180,7 @@ def collect(
             terminated=terminated & live,
             truncated=truncated & live,
             mask=live.astype(jnp.float32),
+            rovers=exists.astype(jnp.float32),
         )
         stats = step_stats(rewards, info, live)
         carry = (_where_env(done, obs, next_obs), _where_env(done, env_state, next_state), done | terminated)
@@ -147,9 +191,10 @@ def collect(
     return traj, episode_totals(stats)
 
 
-def values_of(config: OnPolicyConfig, critic, returns: ObsNorm, obs: jax.Array) -> jax.Array:
-    """Every rover's value [..., N] of observations [..., N, O] (de-standardised with --value-norm)."""
-    value = networks(config.learner, config.ppo)[1].apply(critic, critic_inputs(config.learner.algo, obs))[..., 0]
+def values_of(config: OnPolicyConfig, critic, returns: ObsNorm, obs) -> jax.Array:
+    """Every rover's value [..., N] of observations [..., N, ...] (de-standardised with --value-norm)."""
+    nets = policy_networks(config.learner, config.ppo)
+    value = nets.value(critic, nets.critic_inputs(obs))
     if config.ppo.value_norm:
         return returns.mean[0] + std(returns)[0] * value
     return value
@@ -158,7 +203,9 @@ def values_of(config: OnPolicyConfig, critic, returns: ObsNorm, obs: jax.Array) 
 def make_batch(config: OnPolicyConfig, state: PPOState, traj: Trajectory) -> tuple[Batch, ObsNorm]:
     """GAE per rover on ``traj`` and the flat [B] batch of the update; with --value-norm the
     value-target statistics are updated first and targets and values standardised by them.
-    Returns the batch and the (updated) value-target statistics."""
+    Samples of rovers that do not exist (mixed sizes) are masked out like steps after a
+    termination. Returns the batch and the (updated) value-target statistics."""
+    nets = policy_networks(config.learner, config.ppo)
     values = values_of(config, state.critic, state.returns, traj.obs)  # [T, E, N]
     next_values = values_of(config, state.critic, state.returns, traj.next_obs)
     per_rover = lambda x: jnp.broadcast_to(x[..., None], values.shape)  # noqa: E731
@@ -171,16 +218,16 @@ def make_batch(config: OnPolicyConfig, state: PPOState, traj: Trajectory) -> tup
         config.ppo.gae_lambda,
         per_rover(traj.truncated),
     )
-    mask = per_rover(traj.mask)
+    mask = per_rover(traj.mask) * traj.rovers
     returns = state.returns
     if config.ppo.value_norm:
         returns = update_obs_norm(returns, targets[..., None], mask)
         targets = (targets - returns.mean[0]) / std(returns)[0]
         values = (values - returns.mean[0]) / std(returns)[0]
-    flat = lambda x: x.reshape(-1, *x.shape[3:])  # noqa: E731
+    flat = lambda tree: jax.tree.map(lambda x: x.reshape(-1, *x.shape[3:]), tree)  # noqa: E731
     batch = Batch(
-        actor_inputs=flat(actor_inputs(traj.obs)),
-        critic_inputs=flat(critic_inputs(config.learner.algo, traj.obs)),
+        actor_inputs=flat(nets.actor_inputs(traj.obs)),
+        critic_inputs=flat(nets.critic_inputs(traj.obs)),
         actions=flat(traj.actions),
         log_probs=flat(traj.log_probs),
         advantages=flat(advantages),
@@ -191,12 +238,14 @@ def make_batch(config: OnPolicyConfig, state: PPOState, traj: Trajectory) -> tup
     return batch, returns
 
 
-def iteration(config: OnPolicyConfig, params: EnvParams, state: PPOState, key: jax.Array):
-    """One PPO iteration of one seed: E episodes, GAE, ``epochs`` x ``minibatches`` updates.
+def iteration(config: OnPolicyConfig, params: EnvParams, state: PPOState, xs: tuple[jax.Array, jax.Array]):
+    """One PPO iteration of one seed (``xs``: its key and the episodes trained before it): E
+    episodes, GAE, ``epochs`` x ``minibatches`` updates.
 
     Returns the state and ``(episode stats [E], learner info (means over the updates))``."""
+    key, episodes = xs
     k_collect, k_shuffle = jax.random.split(key)
-    traj, episode = collect(config, params, state.actor, k_collect)
+    traj, episode = collect(config, params, state.actor, k_collect, episodes)
     batch, returns = make_batch(config, state, traj)
     state = state.replace(returns=returns)
     size = batch.mask.shape[0]
@@ -220,7 +269,8 @@ def run_chunk(config: OnPolicyConfig, params: EnvParams, runner: Runner, total: 
 
     def one_seed(state: PPOState, key: jax.Array):
         keys = jax.random.split(key, iterations + 1)
-        state, (episode, info) = jax.lax.scan(partial(iteration, config, params), state, keys[1:])
+        episodes = runner.episodes + config.num_envs * jnp.arange(iterations)
+        state, (episode, info) = jax.lax.scan(partial(iteration, config, params), state, (keys[1:], episodes))
         metrics = {k: v.mean(axis=(0, 1)) for k, v in episode.items()}  # [I, E, ...]
         metrics.update({k: v.mean(axis=0) for k, v in info.items()})  # [I]
         return state, metrics, keys[0]
@@ -235,8 +285,13 @@ def run_chunk(config: OnPolicyConfig, params: EnvParams, runner: Runner, total: 
     return runner, metrics
 
 
-def _act(acting: tuple[AlgoConfig, PPOConfig], weights, obs: jax.Array, plan) -> jax.Array:
+def _act(acting: tuple[AlgoConfig, PPOConfig], weights, obs, plan) -> jax.Array:
     return act(*acting, weights[0], obs)
+
+
+def _view(acting: tuple[AlgoConfig, PPOConfig]):
+    nets = policy_networks(*acting)
+    return nets.observe if nets.any_size else None
 
 
 FAMILY = Family(
@@ -248,6 +303,7 @@ FAMILY = Family(
     learners=learners,
     acting=lambda config: (config.learner, config.ppo),
     act=_act,
+    view=_view,
     weights=lambda state: (state.actor, None),  # no observation normaliser
     metric_names=lambda learner: PPO_METRICS,
     replay=False,

@@ -1,0 +1,96 @@
+"""One policy for every swarm size: train the `anysize` preset once, judge it at every size.
+
+    python docs/results/any-size/any_size.py --run runs/anysize              # train (or resume), then evaluate
+    python docs/results/any-size/any_size.py --run runs/anysize --evaluate   # evaluate the run as it stands
+
+Trains ``roverswarm train --preset anysize --seeds 5`` (MAPPO with entity networks on
+paper-2..10, a size drawn per episode) into ``--run`` (resumed if it is there; Ctrl-C saves),
+then evaluates every seed's deterministic policy at N = 2..10 (the sizes it trained on) and at
+12, 16, 20 and 32 (sizes it never saw), 1000 episodes per policy on the same layouts, beside
+random and the oracle. Writes ``any-size.csv`` / ``.md`` (the sweep tables' columns: every seed's
+score, the means of POIs observed, collisions and trap contacts, the oracle's trap contacts)
+and ``any-size.png``: the score against N beside the best per-size rows of the scale sweeps
+(``docs/results/swarm/score-vs-n.csv``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from roverswarm import train
+from roverswarm.config import PRESETS
+from roverswarm.evaluate import evaluate_run
+from roverswarm.experiments.sweep import figure, markdown, read_table
+from roverswarm.jaxcache import enable_compilation_cache
+from roverswarm.runs import CONFIG, METRICS, atomic_write, read_metrics, write_csv
+
+HERE = Path(__file__).resolve().parent
+SIZES = (2, 3, 4, 5, 6, 7, 8, 9, 10, 12, 16, 20, 32)
+BASELINES = {"swarm (60k)", "swarm-ddpg (60k)", "mappo (40k)"}
+"""The best per-size rows of today (one network per size), from the scale sweeps."""
+
+
+def trained(run: Path) -> tuple[int, float]:
+    """(episodes per seed, minutes) the run has trained so far (it may have been stopped early)."""
+    rows = [r for r in read_metrics(run / METRICS) if r["seed"] == 0]
+    return int(max(r["episodes"] for r in rows)), sum(r["wall_seconds"] for r in rows) / 60
+
+
+def table(run: Path, episodes: int) -> list[dict[str, object]]:
+    """One row per size: every seed's normalised score and the means the sweep tables give."""
+    done, minutes = trained(run)
+    sizes = ",".join(str(n) for n in SIZES)
+    rows = []
+    evaluated = evaluate_run(run, episodes, scenario=f"paper-{sizes}")
+    for n in SIZES:
+        mine = [r for r in evaluated if r["scenario"] == f"paper-{n}"]
+        by = {r["policy"]: r for r in mine}
+        seeds = [r for r in mine if r["policy"] not in ("random", "oracle")]
+        scores = [float(r["normalized_score"]) for r in seeds]
+        rows.append(
+            {
+                "scenario": f"paper-{n}",
+                "setting": f"anysize ({done / 1000:g}k)",
+                "episodes": done,
+                "seeds": len(seeds),
+                "scores": " / ".join(f"{s:.2f}" for s in scores),
+                "min_score": min(scores),
+                "mean_score": float(np.mean(scores)),
+                **{k: float(np.mean([r[k] for r in seeds])) for k in ("pois_observed", "collisions", "trap_contacts")},
+                "oracle_trap_contacts": by["oracle"]["trap_contacts"],
+                "oracle_pois_observed": by["oracle"]["pois_observed"],
+                "random_reward": by["random"]["episode_reward"],
+                "oracle_reward": by["oracle"]["episode_reward"],
+                "train_minutes": minutes,
+            }
+        )
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--run", type=Path, required=True, help="the training run's folder")
+    parser.add_argument("--episodes", type=int, default=PRESETS["anysize"].episodes, help="training episodes per seed")
+    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--eval-episodes", type=int, default=1000)
+    parser.add_argument("--evaluate", action="store_true", help="evaluate the run as it stands, train nothing")
+    parser.add_argument("--out", type=Path, default=HERE / "any-size", help="output path without suffix")
+    args = parser.parse_args()
+    enable_compilation_cache()
+    if not args.evaluate:
+        config = dataclasses.replace(PRESETS["anysize"], episodes=args.episodes, seeds=args.seeds)
+        train(config, out=args.run, resume=(args.run / CONFIG).exists())
+    rows = table(args.run, args.eval_episodes)
+    write_csv(args.out.with_suffix(".csv"), rows)
+    atomic_write(args.out.with_suffix(".md"), lambda f: f.write(markdown(rows)))
+    baselines = [r for r in read_table(HERE.parent / "swarm" / "score-vs-n.csv") if r["setting"] in BASELINES]
+    figure(rows + baselines, args.out.with_suffix(".png"))
+    print(markdown(rows))
+
+
+if __name__ == "__main__":
+    main()

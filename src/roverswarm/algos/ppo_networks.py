@@ -1,0 +1,184 @@
+"""The on-policy family's network kinds, each one record: what the networks see, and how.
+
+Shape legend: N rovers, O flat observation size, A action size (2), M entity tokens per rover.
+
+- ``mlp`` (``--network mlp``, the default): the flat view. The shared actor sees the rover's
+  observation and its one-hot index [O + N]; MAPPO's value sees every rover's observation
+  and the index [N * O + N], IPPO's the actor's input. Tied to the N it was trained on.
+- ``entity`` (``--network entity``): the entity view (:mod:`roverswarm.env.entities`) and
+  attention over it (:mod:`roverswarm.algos.entity`): no rover index anywhere, so the same
+  weights drive any number of rovers. Each rover's view already holds every entity relative
+  to it, so MAPPO's and IPPO's values see the same input (the rover's view).
+
+Both are Gaussian policies with a learned, state-independent log-std (``log_std`` [A]).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Callable
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from roverswarm.algos.entity import EntityConfig, make_entity_networks
+from roverswarm.algos.learner import AlgoConfig
+from roverswarm.env.entities import nearest_entities, observe_entities
+from roverswarm.env.mars import ACTION_SIZE, EnvParams, EnvState, observe
+
+if TYPE_CHECKING:
+    from roverswarm.algos.ppo import PPOConfig
+
+
+@dataclass(frozen=True)
+class PolicyNetworks:
+    """A network kind of the on-policy family as pure functions (any leading axes)."""
+
+    observe: Callable[[EnvState, EnvParams], Any]
+    """One environment's observations in this kind's view: [N, O], or an entity view [N, ...]."""
+    actor_inputs: Callable[[Any], Any]
+    """Observations [..., N, ...] -> what the actor sees of each rover [..., N, ...]."""
+    critic_inputs: Callable[[Any], Any]
+    """Observations [..., N, ...] -> what the value network sees for each rover [..., N, ...]."""
+    init: Callable[[jax.Array, int, int], tuple[Any, Any]]
+    """(key, N, O) -> fresh (actor, value) parameters (an entity network ignores N and O)."""
+    policy: Callable[[Any, Any], tuple[jax.Array, jax.Array]]
+    """(actor parameters, actor inputs [...]) -> (mean [..., A], log-std [A])."""
+    value: Callable[[Any, Any], jax.Array]
+    """(value parameters, value inputs [...]) -> value [...]."""
+    any_size: bool
+    """Whether the same weights serve any number of rovers, POIs and traps."""
+
+
+# ----------------------------------------------------------------------------- the flat view
+
+_ACTIVATIONS = {"tanh": nn.tanh, "relu": nn.relu}
+
+
+class MLP(nn.Module):
+    """Dense layers of sizes ``hidden`` with ``activation``, then a linear output of size
+    ``out``; orthogonal initialisation (gain sqrt(2) hidden, ``out_gain`` output), zero biases."""
+
+    hidden: Sequence[int]
+    out: int
+    activation: str
+    out_gain: float
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        for width in self.hidden:
+            x = nn.Dense(width, kernel_init=nn.initializers.orthogonal(math.sqrt(2)))(x)
+            x = _ACTIVATIONS[self.activation](x)
+        return nn.Dense(self.out, kernel_init=nn.initializers.orthogonal(self.out_gain))(x)
+
+
+class GaussianActor(nn.Module):
+    """[..., O + N] -> mean [..., A] (linear, unbounded) and a state-independent log-std [A]."""
+
+    hidden: Sequence[int]
+    activation: str
+    init_log_std: float
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+        mean = MLP(self.hidden, ACTION_SIZE, self.activation, 0.01)(x)
+        log_std = self.param("log_std", nn.initializers.constant(self.init_log_std), (ACTION_SIZE,))
+        return mean, log_std
+
+
+def networks(learner: AlgoConfig, config: PPOConfig) -> tuple[GaussianActor, MLP]:
+    """The flat view's (actor, value) modules: hidden widths from the learner, the rest from ``config``."""
+    actor = GaussianActor(learner.hidden, config.activation, config.init_log_std)
+    return actor, MLP(learner.hidden, 1, config.activation, 1.0)
+
+
+def _one_hot_rovers(obs: jax.Array) -> jax.Array:
+    """[..., N, X] -> [..., N, X + N]: each rover's row followed by its one-hot index."""
+    n = obs.shape[-2]
+    return jnp.concatenate([obs, jnp.broadcast_to(jnp.eye(n, dtype=obs.dtype), (*obs.shape[:-1], n))], axis=-1)
+
+
+def actor_inputs(obs: jax.Array) -> jax.Array:
+    """What the shared actor sees: [..., N, O] -> [..., N, O + N] (own observation, one-hot index)."""
+    return _one_hot_rovers(obs)
+
+
+def critic_inputs(algo: str, obs: jax.Array) -> jax.Array:
+    """What the shared value network sees for each rover: [..., N, O] -> [..., N, D].
+
+    MAPPO: every rover's observation (flattened, the same for all rovers) and the rover's
+    one-hot index; IPPO: the actor's input."""
+    if algo == "ippo":
+        return _one_hot_rovers(obs)
+    *batch, n, o = obs.shape
+    return _one_hot_rovers(jnp.broadcast_to(obs.reshape(*batch, 1, n * o), (*batch, n, n * o)))
+
+
+def _mlp_kind(learner: AlgoConfig, config: PPOConfig) -> PolicyNetworks:
+    actor_net, critic_net = networks(learner, config)
+
+    def init(key, num_rovers, obs_size):
+        k_actor, k_critic = jax.random.split(key)
+        obs = jnp.zeros((num_rovers, obs_size))
+        return actor_net.init(k_actor, actor_inputs(obs)), critic_net.init(k_critic, critic_inputs(learner.algo, obs))
+
+    return PolicyNetworks(
+        observe=observe,
+        actor_inputs=actor_inputs,
+        critic_inputs=functools.partial(critic_inputs, learner.algo),
+        init=init,
+        policy=actor_net.apply,
+        value=lambda params, inputs: critic_net.apply(params, inputs)[..., 0],
+        any_size=False,
+    )
+
+
+# ----------------------------------------------------------------------------- the entity view
+
+
+def entity_config(learner: AlgoConfig) -> EntityConfig:
+    """The entity networks' sizes of the learner's options (heads' hidden widths: ``--hidden``)."""
+    return EntityConfig(
+        dim=learner.entity_dim, heads=learner.entity_heads, layers=learner.entity_layers, hidden=learner.hidden
+    )
+
+
+def _entity_kind(learner: AlgoConfig, config: PPOConfig) -> PolicyNetworks:
+    nets = make_entity_networks(entity_config(learner))
+
+    def init(key, num_rovers, obs_size):
+        k_actor, k_critic = jax.random.split(key)
+        log_std = jnp.full((ACTION_SIZE,), config.init_log_std)
+        return {"net": nets.init_actor(k_actor), "log_std": log_std}, nets.init_value(k_critic)
+
+    def policy(params, view):
+        return nets.actor(params["net"], view.own, view.tokens, view.mask), params["log_std"]
+
+    def view(state, params):
+        every = observe_entities(state, params)
+        return every if learner.entity_nearest == 0 else nearest_entities(every, params, learner.entity_nearest)
+
+    return PolicyNetworks(
+        observe=view,
+        actor_inputs=lambda view: view,
+        critic_inputs=lambda view: view,
+        init=init,
+        policy=policy,
+        value=lambda params, view: nets.value(params, view.own, view.tokens, view.mask),
+        any_size=True,
+    )
+
+
+KINDS: dict[str, Callable[[AlgoConfig, Any], PolicyNetworks]] = {"mlp": _mlp_kind, "entity": _entity_kind}
+"""``--network`` -> its on-policy network kind."""
+
+
+@functools.lru_cache(maxsize=None)
+def policy_networks(learner: AlgoConfig, config: PPOConfig) -> PolicyNetworks:
+    """The network kind of ``learner.network`` (one record per config: programs that close
+    over it are reused)."""
+    return KINDS[learner.network](learner, config)
