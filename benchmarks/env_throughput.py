@@ -18,6 +18,12 @@ What is measured, in one run on the same machine:
 The ratio is roverswarm steps/s over mpe2 steps/s. Target: at E = 1024 the ratio is at least
 100 for both N = 3 and N = 5.
 
+A second table measures any swarm size at N = 10, 16 and 32 (E = 1024, reset per episode +
+``step_env``): the unpadded ``paper-N``; the padded layout of ``paper-2..N`` with every
+environment's N drawn per episode (one program, mixed sizes); and the unpadded environment
+with the entity view (:func:`~roverswarm.env.entities.observe_entities`) computed at every
+step. Target: the padded, mixed environment costs at most 1.5x the unpadded one at its maximum N.
+
 Run ``python benchmarks/env_throughput.py`` (``--quick`` for fewer repetitions). The output is
 a Markdown table, then one ``BENCH {json}`` line per row for scripts.
 """
@@ -34,16 +40,27 @@ import jax
 from mpe2 import simple_spread_v3
 
 from roverswarm.env import ACTION_SIZE, EnvParams, get_scenario, reset, step, step_env
+from roverswarm.env.entities import observe_entities
+from roverswarm.env.scenarios import draw_sizes, padded_scenario, scenario_sizes, sized
 from roverswarm.jaxcache import enable_compilation_cache
 
 ROVER_COUNTS = (3, 5)
+ANY_SIZE_COUNTS = (10, 16, 32)
+ANY_SIZE_TARGET = 1.5
 NUM_ENVS = (1, 64, 1024)
 TARGET_RATIO = 100.0
 # Episodes per timed call, so that a call of few environments still takes measurable time.
 EPISODES_PER_CALL = {1: 64, 64: 4, 1024: 1}
 
 
-def make_rollout(params: EnvParams, num_envs: int, num_episodes: int, auto_reset: bool):
+def make_rollout(
+    params: EnvParams,
+    num_envs: int,
+    num_episodes: int,
+    auto_reset: bool,
+    sizes: tuple[int, ...] | None = None,
+    entity_view: bool = False,
+):
     """Jitted ``key -> reward_sum`` running ``num_episodes`` random-action episodes of
     ``num_envs`` environments (the reward sum keeps the work from being optimised away).
 
@@ -51,8 +68,18 @@ def make_rollout(params: EnvParams, num_envs: int, num_episodes: int, auto_reset
     start of an episode and ``step_env`` is scanned over its 25 steps (fixed-length episodes
     end together). ``auto_reset=True`` scans ``step``, which draws a fresh layout at every
     step and keeps it only where an episode ended (the generic, gymnax-style API).
+    ``sizes``: ``params`` is a padded layout and each environment draws its N from ``sizes``
+    at every reset (reset per episode only). ``entity_view``: every step also computes the
+    entity view of every environment.
     """
-    batch_reset = jax.vmap(reset, in_axes=(0, None))
+    if sizes is None:
+        batch_reset = jax.vmap(reset, in_axes=(0, None))
+    else:
+
+        def batch_reset(keys, params):
+            counts = draw_sizes(jax.random.fold_in(keys[0], 1), sizes, keys.shape[0])
+            return jax.vmap(lambda k, n: reset(k, sized(params, n)))(keys, counts)
+
     batch_step_env = jax.vmap(step_env, in_axes=(0, 0, None))
     batch_step = jax.vmap(step, in_axes=(0, 0, 0, None))
 
@@ -63,8 +90,11 @@ def make_rollout(params: EnvParams, num_envs: int, num_episodes: int, auto_reset
         k_act, k_step = jax.random.split(key)
         if auto_reset:
             _, state, rewards, *_ = batch_step(jax.random.split(k_step, num_envs), state, random_actions(k_act), params)
-        else:
+        else:  # a padded state carries its sizes: step_env reads no count from params
             _, state, rewards, *_ = batch_step_env(state, random_actions(k_act), params)
+        if entity_view:
+            view = jax.vmap(observe_entities, in_axes=(0, None))(state, params)
+            return state, rewards.sum() + view.tokens.sum()
         return state, rewards.sum()
 
     def one_episode(state, key):
@@ -84,10 +114,10 @@ def make_rollout(params: EnvParams, num_envs: int, num_episodes: int, auto_reset
     return rollout
 
 
-def roverswarm_steps_per_second(params: EnvParams, num_envs: int, reps: int, auto_reset: bool) -> float:
+def roverswarm_steps_per_second(params: EnvParams, num_envs: int, reps: int, auto_reset: bool, **options) -> float:
     """Median environment steps per second of :func:`make_rollout` over ``reps`` timed calls."""
     episodes = EPISODES_PER_CALL[num_envs]
-    rollout = make_rollout(params, num_envs, episodes, auto_reset)
+    rollout = make_rollout(params, num_envs, episodes, auto_reset, **options)
     key = jax.random.key(0)
     jax.block_until_ready(rollout(key))  # compile and warm up
     times = []
@@ -155,9 +185,36 @@ def main() -> None:
         ratio = next(r["ratio"] for r in rows if r["n"] == n and r["envs"] == max(NUM_ENVS))
         verdict = "met" if ratio >= TARGET_RATIO else "NOT met"
         print(f"target N={n}, E={max(NUM_ENVS)}: >= {TARGET_RATIO:.0f}x mpe2: {verdict} ({ratio:,.0f}x)")
+    any_size = any_size_rows(reps)
     print()
-    for r in rows:
+    for r in rows + any_size:
         print("BENCH " + json.dumps({k: round(v, 1) if isinstance(v, float) else v for k, v in r.items()}))
+
+
+def any_size_rows(reps: int) -> list[dict]:
+    """The any-size table (see the module docstring), printed; returns its rows."""
+    rows, envs = [], max(NUM_ENVS)
+    for n in ANY_SIZE_COUNTS:
+        plain = roverswarm_steps_per_second(get_scenario(f"paper-{n}"), envs, reps, auto_reset=False)
+        name = f"paper-2..{n}"
+        padded = roverswarm_steps_per_second(
+            padded_scenario(name), envs, reps, auto_reset=False, sizes=scenario_sizes(name)
+        )
+        entities = roverswarm_steps_per_second(get_scenario(f"paper-{n}"), envs, reps, auto_reset=False, entity_view=True)
+        rows.append({"n": n, "envs": envs, "unpadded": plain, "padded_mixed": padded, "entity_view": entities})
+    print(f"\nAny swarm size, E = {envs}, reset per episode + step_env (steps/s; cost = unpadded / other):\n")
+    print("| N | unpadded paper-N | padded paper-2..N, mixed | cost | with the entity view | cost |")
+    print("|---|---|---|---|---|---|")
+    for r in rows:
+        print(
+            f"| {r['n']} | {r['unpadded']:,.0f} | {r['padded_mixed']:,.0f} | {r['unpadded'] / r['padded_mixed']:.2f}x "
+            f"| {r['entity_view']:,.0f} | {r['unpadded'] / r['entity_view']:.2f}x |"
+        )
+    for r in rows:
+        cost = r["unpadded"] / r["padded_mixed"]
+        verdict = "met" if cost <= ANY_SIZE_TARGET else "NOT met"
+        print(f"target N={r['n']}: padded, mixed at most {ANY_SIZE_TARGET}x the unpadded cost: {verdict} ({cost:.2f}x)")
+    return rows
 
 
 if __name__ == "__main__":

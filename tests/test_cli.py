@@ -34,7 +34,7 @@ def test_render_writes_an_animation_and_its_last_frame(tmp_path):
 @pytest.mark.parametrize(
     "argv, message",
     [
-        (["render", "--scenario", "paper-11"], "unknown scenario 'paper-11'"),
+        (["render", "--scenario", "mars-11"], "unknown scenario 'mars-11'"),
         (["render", "--out", "episode.txt"], "--out must end in .gif or .mp4"),
         (["render", "--policy", "clever"], "--policy: expected 'oracle', 'random' or a run folder"),
         (

@@ -223,8 +223,8 @@ def test_nearest_first_view_matches_a_python_sort_and_ignores_the_numbering():
 
 
 def test_unknown_preset_names_the_choices():
-    with pytest.raises(UserError, match="unknown scenario 'paper-11'.*paper-2.*spread-3"):
-        get_scenario("paper-11")
+    with pytest.raises(UserError, match="unknown scenario 'mars-11'.*paper-2.*spread-3.*paper-N"):
+        get_scenario("mars-11")
 
 
 @pytest.mark.parametrize(

@@ -197,7 +197,8 @@ def scripted_rollout() -> Rollout:
         coverage_distance=np.zeros(2),
         pois_observed=observed[:, -1].sum(-1),
     )
-    return Rollout(stats, pos, np.zeros((2, 2, 2)), np.zeros((2, 0, 2)), observed, np.zeros((2, 4, 2)))
+    exists = (np.ones((2, 2), bool), np.ones((2, 2), bool), np.ones((2, 0), bool))
+    return Rollout(stats, pos, np.zeros((2, 2, 2)), np.zeros((2, 0, 2)), observed, np.zeros((2, 4, 2)), *exists)
 
 
 def test_mission_metrics_on_scripted_trajectories():

@@ -58,6 +58,7 @@ def episode_frames(data: Rollout, params: EnvParams, episode: int = 0, label: st
                 data.trap_pos[episode],
                 data.observed[episode, t],
                 title,
+                (data.rover_exists[episode], data.poi_exists[episode], data.trap_exists[episode]),
             )
         )
     return EpisodeFrames(frames, float(rewards.sum()))

@@ -105,9 +105,10 @@ def run_evaluate(cmd: EvaluateConfig) -> None:
 
 
 def run_scenarios(cmd: ScenariosCommand) -> None:
-    from roverswarm.env.scenarios import scenario_table
+    from roverswarm.env.scenarios import SIZE_RULE, scenario_table
 
     print_table("roverswarm scenarios", scenario_table(), ("name", "description"))
+    Console().print(SIZE_RULE)
 
 
 def run_render(cmd: RenderConfig) -> None:

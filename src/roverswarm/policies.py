@@ -32,7 +32,7 @@ from flax import struct
 from scipy.optimize import linear_sum_assignment
 
 from roverswarm.algos.normalize import ObsNorm
-from roverswarm.env.mars import ACTION_SIZE, EnvParams, EnvState, observe, other_rovers, trap_radii
+from roverswarm.env.mars import ACTION_SIZE, EnvParams, EnvState, masks_of, observe, other_rovers, trap_radii
 from roverswarm.learners import learner_family
 
 if TYPE_CHECKING:
@@ -103,9 +103,14 @@ class OraclePlan:
 def _oracle_plan(states: EnvState, params: EnvParams) -> OraclePlan:
     rover = np.asarray(states.rover_pos)
     poi = np.asarray(states.poi_pos)
-    return OraclePlan(
-        poi=jnp.asarray(np.stack([assign_pois(r, p) for r, p in zip(rover, poi)])), home=jnp.asarray(rover)
-    )
+    masks = masks_of(states)
+    if masks is None:
+        assigned = [assign_pois(r, p) for r, p in zip(rover, poi)]
+    else:  # a padded layout's entities are its first slots: assign those, the empty rover slots get none
+        assigned = []
+        for r, p, n, m in zip(rover, poi, np.asarray(masks.rovers).sum(-1), np.asarray(masks.pois).sum(-1)):
+            assigned.append(np.concatenate([assign_pois(r[:n], p[:m]), np.full(len(r) - n, -1, np.int32)]))
+    return OraclePlan(poi=jnp.asarray(np.stack(assigned)), home=jnp.asarray(rover))
 
 
 def oracle_goals(state: EnvState, plan: OraclePlan, params: EnvParams) -> jax.Array:
@@ -125,6 +130,9 @@ def oracle_goals(state: EnvState, plan: OraclePlan, params: EnvParams) -> jax.Ar
     assigned = jnp.where(has_poi[:, None], state.poi_pos[index], plan.home)
     claimed = jnp.zeros(p, bool).at[index].max(has_poi & working & ~state.observed[index])
     open_poi = ~state.observed & ~claimed  # [P]
+    masks = masks_of(state)
+    if masks is not None:  # the empty slots of a padded layout neither work nor need a visit
+        working, open_poi = working & masks.rovers, open_poi & masks.pois
     free = working & (~has_poi | state.observed[index])  # [N]
     dist = jnp.linalg.norm(state.rover_pos[:, None, :] - state.poi_pos[None, :, :], axis=-1)  # [N, P]
     cost = jnp.where(free[:, None] & open_poi[None, :], dist, jnp.inf)
@@ -143,7 +151,7 @@ def _steer_around(
 ) -> jax.Array:
     """Re-aim each rover's desired velocity [N, 2] along the tangent of any obstacle it would cross.
 
-    ``obstacles`` [N, K, 2] are the centres each rover must keep ``keep_out`` [K] away from.
+    ``obstacles`` [N, K, 2] are the centres each rover must keep ``keep_out`` [N, K] away from.
     An obstacle blocks a rover when the straight line to its goal passes within the keep-out
     radius of the obstacle's centre before the goal. The rover then heads for the tangent of
     the keep-out circle on the side its heading already leans to, at the same speed, so it
@@ -158,9 +166,9 @@ def _steer_around(
         dist = jnp.linalg.norm(to_obstacle, axis=-1)
         along = jnp.sum(heading * to_obstacle, axis=-1)
         across = heading[:, 0] * to_obstacle[:, 1] - heading[:, 1] * to_obstacle[:, 0]
-        blocked = (along > 0) & (jnp.abs(across) < keep_out[k]) & (along < to_goal + keep_out[k])
+        blocked = (along > 0) & (jnp.abs(across) < keep_out[:, k]) & (along < to_goal + keep_out[:, k])
         # turn away from the obstacle's centre by the tangent angle (90 degrees once inside)
-        angle = jnp.arcsin(jnp.clip(keep_out[k] / jnp.maximum(dist, 1e-9), 0.0, 1.0))
+        angle = jnp.arcsin(jnp.clip(keep_out[:, k] / jnp.maximum(dist, 1e-9), 0.0, 1.0))
         angle = jnp.where(across > 0, -angle, angle)
         unit = to_obstacle / jnp.maximum(dist, 1e-9)[:, None]
         cos, sin = jnp.cos(angle)[:, None], jnp.sin(angle)[:, None]
@@ -188,6 +196,11 @@ def _oracle_act(
         jnp.concatenate([jnp.full((n - 1,), 2 * params.rover_radius), trap_radii(params) + params.rover_radius])
         + _KEEP_OUT_MARGIN
     )
+    keep_out = jnp.broadcast_to(keep_out, (n, keep_out.shape[0]))
+    masks = masks_of(state)
+    if masks is not None:  # nothing to steer around where a padded layout has no rover or trap
+        exists = jnp.concatenate([masks.rovers[other_rovers(n)], jnp.broadcast_to(masks.traps, (n, t))], axis=1)
+        keep_out = jnp.where(exists, keep_out, 0.0)
     vel_des = _steer_around(next_pos, vel_des, goal, obstacles, keep_out)
     # scale rather than clip per component, so the steered direction is kept
     return _clip_norm((vel_des - decay * state.rover_vel) / gain, 1.0, ord=jnp.inf)

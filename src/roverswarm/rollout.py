@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from roverswarm.env.mars import EnvParams, EnvState, coverage_distance, reset, step_env
+from roverswarm.env.mars import EnvParams, EnvState, coverage_distance, masks_of, reset, step_env
 from roverswarm.metrics import EPISODE_METRICS, episode_totals, step_stats
 from roverswarm.policies import ActFn, Plan, Policy
 
@@ -50,6 +50,9 @@ class Rollout:
     trap_pos: np.ndarray  # [E, T_traps, 2]
     observed: np.ndarray  # [E, T + 1, P] bool
     rewards: np.ndarray  # [E, T, N], zero after a termination
+    rover_exists: np.ndarray  # [E, N] bool: False for the empty slots of a padded layout
+    poi_exists: np.ndarray  # [E, P] bool
+    trap_exists: np.ndarray  # [E, T_traps] bool
 
 
 def _run_episode(act: ActFn, key: jax.Array, obs: jax.Array, state: EnvState, plan: Plan, weights, params: EnvParams):
@@ -107,7 +110,9 @@ def rollout(policy: Policy, key: jax.Array, params: EnvParams, num_episodes: int
         collisions=totals["collisions"],
         trap_contacts=totals["trap_contacts"],
         # from the final positions: after a termination the last step's info is of a discarded step
-        coverage_distance=np.asarray(jax.vmap(coverage_distance)(out["rover_pos"][:, -1], states.poi_pos)),
+        coverage_distance=np.asarray(
+            jax.vmap(coverage_distance)(out["rover_pos"][:, -1], states.poi_pos, masks_of(states))
+        ),
         pois_observed=observed[:, -1].sum(axis=-1),
     )
     return Rollout(
@@ -117,7 +122,21 @@ def rollout(policy: Policy, key: jax.Array, params: EnvParams, num_episodes: int
         trap_pos=np.asarray(states.trap_pos),
         observed=observed,
         rewards=rewards,
+        **_exists(states),
     )
+
+
+def _exists(states: EnvState) -> dict[str, np.ndarray]:
+    """Which slots of a batch of layouts [E, ...] hold an entity (all of them unless padded)."""
+    masks = masks_of(states)
+    if masks is None:
+        shapes = (states.fail_step.shape, states.poi_pos.shape[:-1], states.trap_pos.shape[:-1])
+        return dict(zip(("rover_exists", "poi_exists", "trap_exists"), (np.ones(s, bool) for s in shapes)))
+    return {
+        "rover_exists": np.asarray(masks.rovers),
+        "poi_exists": np.asarray(masks.pois),
+        "trap_exists": np.asarray(masks.traps),
+    }
 
 
 @dataclass(frozen=True)
@@ -140,8 +159,8 @@ class MissionStats:
     def of(cls, data: Rollout) -> MissionStats:
         observed = data.observed  # [E, T + 1, P]
         first = np.where(observed.any(axis=1), observed.argmax(axis=1), np.nan)
-        success = observed[:, -1].all(axis=-1)
-        latest = first.max(axis=1)
+        success = (observed[:, -1] | ~data.poi_exists).all(axis=-1)
+        latest = np.where(data.poi_exists, first, -np.inf).max(axis=1)
         return cls(
             first_observed=first,
             pois_observed=data.stats.pois_observed,

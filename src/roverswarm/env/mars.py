@@ -72,6 +72,15 @@ class EnvParams:
     fixed_traps: jax.Array | None = None  # [T, 2]
     fixed_starts: jax.Array | None = None  # [N, 2]
     start_zone: jax.Array | None = None  # [2, 2] low and high corner of the rovers' release zone (default: the map)
+    # Any swarm size in one program: the static counts above are then maxima, and only the first
+    # ``active_*`` rovers, POIs and traps exist (traced, so a vmapped batch may mix sizes; see
+    # :func:`is_padded`). None: every slot exists (an unpadded layout, masks never built).
+    active_rovers: jax.Array | int | None = None  # [] int
+    active_pois: jax.Array | int | None = None  # [] int
+    active_traps: jax.Array | int | None = None  # [] int
+    # Rover failures while training: with this probability per episode one active rover, drawn
+    # uniformly, fails at a step drawn uniformly in [0, max_steps) (None or 0: none fails).
+    fail_rate: jax.Array | float | None = None  # [] float in [0, 1]
 
 
 @struct.dataclass
@@ -85,6 +94,10 @@ class EnvState:
     observed: jax.Array  # [P] bool, POI observed at some step of this episode
     time: jax.Array  # [] int32, steps taken in this episode
     fail_step: jax.Array  # [N] int32, rover i is frozen from step fail_step[i] on (NEVER: it never fails)
+    # padded layouts (params with ``active_*``) only; None: every slot exists
+    rover_mask: jax.Array | None = None  # [N] bool, the rover exists
+    poi_mask: jax.Array | None = None  # [P] bool
+    trap_mask: jax.Array | None = None  # [T] bool
 
 
 NEVER = np.iinfo(np.int32).max
@@ -149,7 +162,48 @@ def validate_params(params: EnvParams) -> EnvParams:
             f"{name} must be None or an array of shape ({rows}, 2), got shape {np.shape(value)}",
         )
     require(0 <= params.damping < 1, f"damping must be in [0, 1), got {params.damping}")
+    for name, size in (
+        ("active_rovers", params.num_rovers),
+        ("active_pois", params.num_pois),
+        ("active_traps", params.num_traps),
+    ):
+        value = getattr(params, name)
+        low = 1 if name == "active_rovers" else 0
+        require(
+            value is None or bool(np.all((np.asarray(value) >= low) & (np.asarray(value) <= size))),
+            f"{name} must be in [{low}, {size}] (the layout's maximum), got {value}",
+        )
+    require(
+        params.fail_rate is None or bool(np.all((np.asarray(params.fail_rate) >= 0) & (np.asarray(params.fail_rate) <= 1))),
+        f"fail_rate must be in [0, 1] (a probability per episode), got {params.fail_rate}",
+    )
     return params
+
+
+def is_padded(params: EnvParams) -> bool:
+    """Whether ``params`` give active counts, so that states carry masks (static: decided at trace time)."""
+    return any(c is not None for c in (params.active_rovers, params.active_pois, params.active_traps))
+
+
+def _active(count, size: int) -> jax.Array:
+    """[size] bool: the first ``count`` slots (all if None)."""
+    return jnp.arange(size) < (size if count is None else count)
+
+
+@struct.dataclass
+class Masks:
+    """Which slots of a padded layout exist."""
+
+    rovers: jax.Array  # [N] bool
+    pois: jax.Array  # [P] bool
+    traps: jax.Array  # [T] bool
+
+
+def masks_of(state: EnvState) -> Masks | None:
+    """The state's masks, or None for an unpadded layout (every slot exists)."""
+    if state.rover_mask is None:
+        return None
+    return Masks(state.rover_mask, state.poi_mask, state.trap_mask)
 
 
 def trap_radii(params: EnvParams) -> jax.Array:
@@ -167,19 +221,29 @@ def _pairwise_dist(a: jax.Array, b: jax.Array) -> jax.Array:
     return jnp.sqrt(jnp.sum(jnp.square(a[:, None, :] - b[None, :, :]), axis=-1))
 
 
-def coverage_distance(rover_pos: jax.Array, poi_pos: jax.Array) -> jax.Array:
-    """The swarm's coverage distance: sum over POIs [P, 2] of the nearest rover's [N, 2] distance."""
-    return jnp.sum(jnp.min(_pairwise_dist(rover_pos, poi_pos), axis=0))
+def coverage_distance(rover_pos: jax.Array, poi_pos: jax.Array, masks: Masks | None = None) -> jax.Array:
+    """The swarm's coverage distance: sum over POIs [P, 2] of the nearest rover's [N, 2] distance
+    (with ``masks``, over the POIs that exist, of the nearest rover that exists)."""
+    dist = _pairwise_dist(rover_pos, poi_pos)
+    if masks is None:
+        return jnp.sum(jnp.min(dist, axis=0))
+    nearest = jnp.min(jnp.where(masks.rovers[:, None], dist, jnp.inf), axis=0)
+    return jnp.sum(jnp.where(masks.pois, nearest, 0.0))
 
 
-def _first_clear(candidates: jax.Array, obstacles: jax.Array, clearance: jax.Array) -> jax.Array:
+def _first_clear(
+    candidates: jax.Array, obstacles: jax.Array, clearance: jax.Array, exists: jax.Array | None = None
+) -> jax.Array:
     """[K, C, 2] candidates, [B, 2] obstacles, [B] or [] clearance -> [K, 2].
 
     For each of K items, the first of its C candidates at least ``clearance`` from every
-    obstacle (the first candidate if none is).
+    obstacle that ``exists`` ([B] bool; all if None); the first candidate if none is.
     """
     dist = jnp.sqrt(jnp.sum(jnp.square(candidates[:, :, None, :] - obstacles), axis=-1))
-    clear = jnp.all(dist >= clearance, axis=-1)  # [K, C]
+    far = dist >= clearance
+    if exists is not None:
+        far = far | ~exists
+    clear = jnp.all(far, axis=-1)  # [K, C]
     index = jnp.argmax(clear, axis=-1)  # first True, or 0
     return jnp.take_along_axis(candidates, index[:, None, None], axis=1)[:, 0]
 
@@ -192,11 +256,20 @@ def reset(key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
     keeps ``trap_radius + rover_radius`` away from every POI (so a rover sitting on a POI
     touches no trap) and a drawn rover starts outside every trap (in a ``start_zone``, also
     clear of the rovers placed before it); each uses the first of 16 uniform candidates that
-    satisfies this. No rover has failed (``fail_step`` is NEVER).
+    satisfies this. No rover has failed (``fail_step`` is NEVER) unless ``fail_rate`` draws a
+    failure, from a key of its own (the layout is the same whatever the rate).
+
+    Padded params (``active_*``): every slot is drawn, the state carries masks, and only the
+    entities that exist keep each other clear.
 
     Returns ``(obs [N, O], state)``.
     """
     n, p, t = params.num_rovers, params.num_pois, params.num_traps
+    masks = None
+    if is_padded(params):
+        masks = Masks(
+            _active(params.active_rovers, n), _active(params.active_pois, p), _active(params.active_traps, t)
+        )
     k_poi, k_trap, k_rover = jax.random.split(key, 3)
     size = params.map_size
     poi_pos = params.fixed_pois
@@ -206,11 +279,13 @@ def reset(key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
     trap_pos = params.fixed_traps
     if trap_pos is None:
         trap_cand = jax.random.uniform(k_trap, (t, _LAYOUT_CANDIDATES, 2), minval=-size, maxval=size)
-        trap_pos = _first_clear(trap_cand, poi_pos, (trap_radius + params.rover_radius)[:, None, None])
+        trap_pos = _first_clear(
+            trap_cand, poi_pos, (trap_radius + params.rover_radius)[:, None, None], None if masks is None else masks.pois
+        )
     rover_pos = params.fixed_starts
     if rover_pos is None and params.start_zone is None:
         rover_cand = jax.random.uniform(k_rover, (n, _LAYOUT_CANDIDATES, 2), minval=-size, maxval=size)
-        rover_pos = _first_clear(rover_cand, trap_pos, trap_radius + params.rover_radius)
+        rover_pos = _first_clear(rover_cand, trap_pos, trap_radius + params.rover_radius, None if masks is None else masks.traps)
     elif rover_pos is None:  # a release zone is crowded: each rover also keeps clear of those placed before it
         rover_cand = jax.random.uniform(
             k_rover, (n, _LAYOUT_CANDIDATES, 2), minval=params.start_zone[0], maxval=params.start_zone[1]
@@ -218,8 +293,12 @@ def reset(key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
         rover_pos = jnp.zeros((0, 2))
         for i in range(n):
             clearance = jnp.concatenate([trap_radius + params.rover_radius, jnp.full((i,), 2 * params.rover_radius)])
-            placed = _first_clear(rover_cand[i : i + 1], jnp.concatenate([trap_pos, rover_pos]), clearance)
+            exists = None if masks is None else jnp.concatenate([masks.traps, masks.rovers[:i]])
+            placed = _first_clear(rover_cand[i : i + 1], jnp.concatenate([trap_pos, rover_pos]), clearance, exists)
             rover_pos = jnp.concatenate([rover_pos, placed])
+    fail_step = jnp.full((n,), NEVER, jnp.int32)
+    if params.fail_rate is not None:
+        fail_step = _draw_failure(jax.random.fold_in(key, 3), params, n if masks is None else params.active_rovers)
     state = EnvState(
         rover_pos=jnp.asarray(rover_pos, jnp.float32),
         rover_vel=jnp.zeros((n, 2)),
@@ -227,10 +306,23 @@ def reset(key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
         trap_pos=jnp.asarray(trap_pos, jnp.float32),
         observed=jnp.zeros((p,), bool),
         time=jnp.zeros((), jnp.int32),
-        fail_step=jnp.full((n,), NEVER, jnp.int32),
+        fail_step=fail_step,
+        rover_mask=None if masks is None else masks.rovers,
+        poi_mask=None if masks is None else masks.pois,
+        trap_mask=None if masks is None else masks.traps,
     )
     state = state.replace(observed=_observed_now(state, params))
     return observe(state, params), state
+
+
+def _draw_failure(key: jax.Array, params: EnvParams, active_rovers) -> jax.Array:
+    """[N] fail steps: with probability ``fail_rate`` one of the ``active_rovers`` first rovers,
+    uniform, fails at a uniform step in [0, max_steps); NEVER elsewhere."""
+    k_fails, k_rover, k_step = jax.random.split(key, 3)
+    fails = jax.random.uniform(k_fails) < params.fail_rate
+    rover = jax.random.randint(k_rover, (), 0, active_rovers)
+    when = jax.random.randint(k_step, (), 0, params.max_steps)
+    return jnp.where(fails & (jnp.arange(params.num_rovers) == rover), when, NEVER).astype(jnp.int32)
 
 
 def other_rovers(num_rovers: int) -> np.ndarray:
@@ -246,35 +338,67 @@ def observe(state: EnvState, params: EnvParams) -> jax.Array:
     with ``params.nearest_first`` each of the three groups ordered nearest first.
 
     The nearest-first view is the same for every permutation of the layout's POIs, traps and
-    rovers, so a network need not learn each assignment of indices to places."""
-    return observe_positions(state.rover_pos, state.rover_vel, state.poi_pos, state.trap_pos, params)
+    rovers, so a network need not learn each assignment of indices to places. In a padded
+    layout the slots of entities that do not exist (and the rows of rovers that do not) hold
+    zeros, after the real ones in each group."""
+    return observe_positions(state.rover_pos, state.rover_vel, state.poi_pos, state.trap_pos, params, masks_of(state))
 
 
 def observe_positions(
-    rover_pos: jax.Array, rover_vel: jax.Array, poi_pos: jax.Array, trap_pos: jax.Array, params: EnvParams
+    rover_pos: jax.Array,
+    rover_vel: jax.Array,
+    poi_pos: jax.Array,
+    trap_pos: jax.Array,
+    params: EnvParams,
+    masks: Masks | None = None,
 ) -> jax.Array:
     """:func:`observe` from the only parts of the state it reads (rovers [N, 2], POIs [P, 2],
-    traps [T, 2]): what the compact replay keeps to rebuild observations."""
+    traps [T, 2], and a padded layout's masks): what the compact replay keeps to rebuild observations."""
+    others = other_rovers(params.num_rovers)
     groups = [poi_pos[None] - rover_pos[:, None], trap_pos[None] - rover_pos[:, None]]
-    groups.append(rover_pos[other_rovers(params.num_rovers)] - rover_pos[:, None])  # [N, N - 1, 2]
+    groups.append(rover_pos[others] - rover_pos[:, None])  # [N, N - 1, 2]
+    if masks is None:
+        if params.nearest_first:
+            groups = [_nearest_first(g) for g in groups]
+        flat = [g.reshape(params.num_rovers, -1) for g in groups]
+        return jnp.concatenate([rover_vel, rover_pos, *flat], axis=-1)
+    exists = [
+        jnp.broadcast_to(masks.pois, groups[0].shape[:2]),
+        jnp.broadcast_to(masks.traps, groups[1].shape[:2]),
+        masks.rovers[others],
+    ]
     if params.nearest_first:
-        groups = [_nearest_first(g) for g in groups]
+        groups, exists = zip(*(_nearest_first(g, e) for g, e in zip(groups, exists)))
+    else:  # index order keeps the real entities first: they are the first slots
+        groups = [jnp.where(e[..., None], g, 0.0) for g, e in zip(groups, exists)]
     flat = [g.reshape(params.num_rovers, -1) for g in groups]
-    return jnp.concatenate([rover_vel, rover_pos, *flat], axis=-1)
+    obs = jnp.concatenate([rover_vel, rover_pos, *flat], axis=-1)
+    return jnp.where(masks.rovers[:, None], obs, 0.0)
 
 
-def _nearest_first(rel: jax.Array) -> jax.Array:
-    """[N, K, 2] relative positions -> the same, each row's K points ordered by distance."""
-    order = jnp.argsort(jnp.sum(jnp.square(rel), axis=-1), axis=-1, stable=True)
-    return jnp.take_along_axis(rel, order[..., None], axis=1)
+def _nearest_first(rel: jax.Array, exists: jax.Array | None = None):
+    """[N, K, 2] relative positions -> the same, each row's K points ordered by distance.
+    With ``exists`` [N, K]: the real points first, zeros after them; returns (points, exists) reordered."""
+    dist = jnp.sum(jnp.square(rel), axis=-1)
+    if exists is None:
+        order = jnp.argsort(dist, axis=-1, stable=True)
+        return jnp.take_along_axis(rel, order[..., None], axis=1)
+    order = jnp.argsort(jnp.where(exists, dist, jnp.inf), axis=-1, stable=True)
+    exists = jnp.take_along_axis(exists, order, axis=1)
+    return jnp.where(exists[..., None], jnp.take_along_axis(rel, order[..., None], axis=1), 0.0), exists
 
 
 def _observed_now(state: EnvState, params: EnvParams) -> jax.Array:
-    return state.observed | jnp.any(_pairwise_dist(state.rover_pos, state.poi_pos) < observe_radii(params), axis=0)
+    near = _pairwise_dist(state.rover_pos, state.poi_pos) < observe_radii(params)
+    masks = masks_of(state)
+    if masks is None:
+        return state.observed | jnp.any(near, axis=0)
+    return (state.observed | jnp.any(near & masks.rovers[:, None], axis=0)) & masks.pois
 
 
-def contact_forces(pos: jax.Array, params: EnvParams) -> jax.Array:
-    """[N, 2] positions -> [N, 2] total soft contact force on each rover from the others."""
+def contact_forces(pos: jax.Array, params: EnvParams, exists: jax.Array | None = None) -> jax.Array:
+    """[N, 2] positions -> [N, 2] total soft contact force on each rover from the others (only
+    between rovers that ``exists`` [N] says exist, if given)."""
     n = params.num_rovers
     delta = pos[:, None, :] - pos[None, :, :]  # [N, N, 2], rover a minus rover b
     eye = jnp.eye(n, dtype=bool)
@@ -282,7 +406,8 @@ def contact_forces(pos: jax.Array, params: EnvParams) -> jax.Array:
     k = params.contact_margin
     penetration = jnp.logaddexp(0.0, -(dist - 2 * params.rover_radius) / k) * k
     force = params.contact_force * delta / dist[..., None] * penetration[..., None]
-    return jnp.sum(jnp.where(eye[..., None], 0.0, force), axis=1)
+    apart = eye if exists is None else eye | ~(exists[:, None] & exists[None, :])
+    return jnp.sum(jnp.where(apart[..., None], 0.0, force), axis=1)
 
 
 def check_actions(actions: jax.Array, params: EnvParams) -> None:
@@ -298,7 +423,10 @@ def step_env(
     """Advance one step without auto-reset. ``actions`` is ``[N, 2]``, clipped to [-1, 1].
 
     A failed rover (``state.time >= state.fail_step``) stays where it is, whatever its action
-    and whatever pushes it; it still counts in contacts and coverage.
+    and whatever pushes it; it still counts in contacts and coverage: the others can touch it,
+    and it covers the POIs near it (the same rule in training, evaluation and ``mission stress``).
+    In a padded layout a rover that does not exist never moves, touches nothing, covers nothing
+    and earns 0; POIs and traps that do not exist are not there for anyone.
 
     Returns ``(obs [N, O], state, rewards [N], terminated [], truncated [], info)`` where info
     holds ``collisions`` [N] (other rovers touched), ``trap_contacts`` [N] (traps touched),
@@ -306,26 +434,37 @@ def step_env(
     ``pois_observed`` [] (POIs observed so far this episode).
     """
     check_actions(actions, params)
+    masks = masks_of(state)
+    exists = None if masks is None else masks.rovers
     force = params.sensitivity * jnp.clip(actions, -1.0, 1.0)
-    force = force + contact_forces(state.rover_pos, params)
+    force = force + contact_forces(state.rover_pos, params, exists)
     pos = state.rover_pos + state.rover_vel * params.dt
     vel = state.rover_vel * (1.0 - params.damping) + force / params.mass * params.dt
-    frozen = (state.time >= state.fail_step)[:, None]
-    pos = jnp.where(frozen, state.rover_pos, pos)
-    vel = jnp.where(frozen, 0.0, vel)
+    frozen = state.time >= state.fail_step
+    if masks is not None:  # a rover that does not exist stands still
+        frozen = frozen | ~masks.rovers
+    pos = jnp.where(frozen[:, None], state.rover_pos, pos)
+    vel = jnp.where(frozen[:, None], 0.0, vel)
     state = state.replace(rover_pos=pos, rover_vel=vel, time=state.time + 1)
     state = state.replace(observed=_observed_now(state, params))
 
     rover_dist = _pairwise_dist(pos, pos)
     touching = (rover_dist < 2 * params.rover_radius) & ~jnp.eye(params.num_rovers, dtype=bool)
-    collisions = jnp.sum(touching, axis=1)
     in_trap = _pairwise_dist(pos, state.trap_pos) < params.rover_radius + trap_radii(params)
+    if masks is not None:
+        touching = touching & masks.rovers[:, None] & masks.rovers[None, :]
+        in_trap = in_trap & masks.rovers[:, None] & masks.traps[None, :]
+    collisions = jnp.sum(touching, axis=1)
     trap_contacts = jnp.sum(in_trap, axis=1)
-    coverage = coverage_distance(pos, state.poi_pos)
+    coverage = coverage_distance(pos, state.poi_pos, masks)
     rewards = -coverage - params.collision_penalty * collisions - params.trap_penalty * trap_contacts
+    all_observed = jnp.all(state.observed)
+    if masks is not None:  # a rover that does not exist earns nothing; a POI that does not exist needs no visit
+        rewards = jnp.where(masks.rovers, rewards, 0.0)
+        all_observed = jnp.all(state.observed | ~masks.pois)
 
     truncated = state.time >= params.max_steps
-    terminated = jnp.asarray(params.terminate_on_complete) & jnp.all(state.observed)
+    terminated = jnp.asarray(params.terminate_on_complete) & all_observed
     info = {
         "collisions": collisions,
         "trap_contacts": trap_contacts,

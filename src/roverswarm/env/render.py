@@ -38,10 +38,18 @@ class FrameRenderer:
         trap_pos: np.ndarray,
         observed: np.ndarray,
         title: str = "",
+        exists: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     ) -> np.ndarray:
         """RGB uint8 ``[H, W, 3]`` of the rovers at ``trail[-1]`` with their paths ``trail``
-        ``[t + 1, N, 2]``, POIs ``[P, 2]`` (filled where ``observed`` [P]) and traps ``[T, 2]``."""
+        ``[t + 1, N, 2]``, POIs ``[P, 2]`` (filled where ``observed`` [P]) and traps ``[T, 2]``;
+        with ``exists`` (rovers [N], POIs [P], traps [T] bool: a padded layout), only those that exist."""
         p, ax = self.params, self.ax
+        if exists is not None:
+            rovers, pois, traps = exists
+            trail, poi_pos, observed, trap_pos = trail[:, rovers], poi_pos[pois], observed[pois], trap_pos[traps]
+            trap_radius, observe_radius = np.asarray(trap_radii(p))[traps], np.asarray(observe_radii(p))[pois]
+        else:
+            trap_radius, observe_radius = np.asarray(trap_radii(p)), np.asarray(observe_radii(p))
         ax.clear()
         size = float(p.map_size)
         ax.set_xlim(-size * 1.1, size * 1.1)
@@ -51,9 +59,9 @@ class FrameRenderer:
         ax.set_yticks([])
         ax.set_facecolor("#f3e2cf")  # Martian regolith
         ax.plot([-size, size, size, -size, -size], [-size, -size, size, size, -size], color="#b08060", lw=1)
-        for (x, y), r in zip(trap_pos, np.asarray(trap_radii(p))):
+        for (x, y), r in zip(trap_pos, trap_radius):
             ax.add_patch(Circle((x, y), r, color="#5a3a22", alpha=0.85))
-        for (x, y), seen, radius in zip(poi_pos, observed, np.asarray(observe_radii(p))):
+        for (x, y), seen, radius in zip(poi_pos, observed, observe_radius):
             ax.add_patch(Circle((x, y), float(radius), fill=False, ls="--", color="#2e7d32", lw=0.8))
             ax.add_patch(Circle((x, y), float(p.poi_radius), color="#2e7d32", fill=bool(seen), lw=1.5))
         for i in range(trail.shape[1]):

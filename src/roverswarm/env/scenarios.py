@@ -1,16 +1,47 @@
 """Named scenario presets: data, not code branches.
 
 ``paper-2`` .. ``paper-5`` are the paper's four experiments (N rovers, N POIs, N traps);
-``paper-6`` .. ``paper-10`` grow the same swarm further;
+``paper-N`` grows the same swarm, for any N from 2 to :data:`MAX_ROVERS`;
 ``spread-3`` is cooperative navigation without traps (comparable to MPE ``simple_spread``).
+
+The map beyond N = 10 (:data:`DENSE_UP_TO`): a fixed map would crowd, so it grows to keep
+paper-10's density of entities per area (as PIC grows its arena): half-width
+``max(1, sqrt(N / 10))``, 1.0 up to N = 10, 1.26 at N = 16, 1.79 at N = 32.
+
+A *range* of sizes, ``paper-2..10`` (every N from 2 to 10) or a list ``paper-2,4,8``, is one
+padded layout (:func:`padded_scenario`: the largest N's slots) in which each environment draws
+its own N (:func:`sized`, traced, so one compiled program steps every size).
 """
 
 from __future__ import annotations
 
+import math
+import re
 from dataclasses import dataclass
 
+import jax
+import jax.numpy as jnp
+
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, validate_params
-from roverswarm.errors import UserError
+from roverswarm.errors import UserError, require
+
+MAX_ROVERS = 64
+"""The largest ``paper-N``."""
+DENSE_UP_TO = 10
+"""``paper-N`` keeps the map [-1, 1]^2 up to this N, and paper-10's density beyond it."""
+
+
+def paper_map_size(n):
+    """Half-width of ``paper-N``'s map: ``max(1, sqrt(N / DENSE_UP_TO))`` (a float for an int N,
+    traced for a traced one)."""
+    if isinstance(n, int):
+        return max(1.0, math.sqrt(n / DENSE_UP_TO))
+    return jnp.maximum(1.0, jnp.sqrt(n / DENSE_UP_TO))
+
+
+def paper_params(n: int) -> EnvParams:
+    """``paper-N``: N rovers, N POIs, N traps on :func:`paper_map_size`'s map."""
+    return EnvParams(num_rovers=n, num_pois=n, num_traps=n, map_size=paper_map_size(n))
 
 
 @dataclass(frozen=True)
@@ -24,9 +55,8 @@ class Scenario:
 
 def _paper(n: int) -> Scenario:
     what = "paper experiment" if n <= 5 else "larger swarm"
-    return Scenario(
-        f"paper-{n}", EnvParams(num_rovers=n, num_pois=n, num_traps=n), f"{what}: {n} rovers, {n} POIs, {n} traps"
-    )
+    where = "" if n <= DENSE_UP_TO else f", map half-width {paper_map_size(n):.2f}"
+    return Scenario(f"paper-{n}", paper_params(n), f"{what}: {n} rovers, {n} POIs, {n} traps{where}")
 
 
 SCENARIOS: dict[str, Scenario] = {
@@ -42,11 +72,69 @@ SCENARIOS: dict[str, Scenario] = {
 }
 
 
+_NAMES = (
+    f"one of {', '.join(SCENARIOS)}, paper-N (N in 2..{MAX_ROVERS}), a range paper-A..B or a list paper-A,B,C"
+)
+_RANGE = re.compile(r"paper-(\d+)\.\.(\d+)")
+_LIST = re.compile(r"paper-(\d+(?:,\d+)+)")
+_SINGLE = re.compile(r"paper-(\d+)")
+
+
+def scenario_sizes(name: str) -> tuple[int, ...]:
+    """The swarm sizes N of scenario ``name``, ascending: one for a single scenario, several
+    for a range (``paper-2..10``) or list (``paper-2,4,8``); :class:`UserError` if ``name`` is
+    none of these or a size is outside 2..MAX_ROVERS."""
+    if name in SCENARIOS:
+        return (SCENARIOS[name].params.num_rovers,)
+    if match := _RANGE.fullmatch(name):
+        low, high = int(match[1]), int(match[2])
+        require(low < high, f"scenario '{name}': a range paper-A..B needs A < B")
+        sizes = tuple(range(low, high + 1))
+    elif match := _LIST.fullmatch(name):
+        sizes = tuple(sorted({int(n) for n in match[1].split(",")}))
+    elif match := _SINGLE.fullmatch(name):
+        sizes = (int(match[1]),)
+    else:
+        raise UserError(f"unknown scenario '{name}'; choose {_NAMES}")
+    require(
+        2 <= sizes[0] and sizes[-1] <= MAX_ROVERS,
+        f"scenario '{name}': every N must be in 2..{MAX_ROVERS}, got {sizes[0]}..{sizes[-1]}",
+    )
+    return sizes
+
+
 def get_scenario(name: str) -> EnvParams:
-    """The validated :class:`EnvParams` of preset ``name``; :class:`UserError` if unknown."""
-    if name not in SCENARIOS:
-        raise UserError(f"unknown scenario '{name}'; choose one of: {', '.join(SCENARIOS)}")
-    return validate_params(SCENARIOS[name].params)
+    """The validated :class:`EnvParams` of one scenario ``name`` (a preset or ``paper-N``);
+    :class:`UserError` if unknown, or if it is a range (see :func:`padded_scenario`)."""
+    sizes = scenario_sizes(name)
+    require(
+        len(sizes) == 1,
+        f"scenario '{name}' is a range of swarm sizes; this needs one size, such as paper-{sizes[-1]}",
+    )
+    params = SCENARIOS[name].params if name in SCENARIOS else paper_params(sizes[0])
+    return validate_params(params)
+
+
+def padded_scenario(name: str) -> EnvParams:
+    """The padded layout of scenario ``name`` (a ``paper`` size, range or list): the slots of
+    its largest N, all of them active; :func:`sized` picks each environment's N within it."""
+    sizes = scenario_sizes(name)
+    require(
+        name not in SCENARIOS or name.startswith("paper-"),
+        f"scenario '{name}' has no range of sizes; only the paper-N family has (e.g. paper-2..10)",
+    )
+    return sized(paper_params(sizes[-1]), sizes[-1])
+
+
+def sized(params: EnvParams, n) -> EnvParams:
+    """``params`` (a padded paper layout) with ``n`` rovers, POIs and traps active on
+    paper-N's map (``n`` may be traced: vmap over it to mix sizes in one program)."""
+    return params.replace(active_rovers=n, active_pois=n, active_traps=n, map_size=paper_map_size(n))
+
+
+def draw_sizes(key: jax.Array, sizes: tuple[int, ...], count: int) -> jax.Array:
+    """[count] swarm sizes drawn uniformly from ``sizes``."""
+    return jnp.asarray(sizes, jnp.int32)[jax.random.randint(key, (count,), 0, len(sizes))]
 
 
 def scenario_table() -> list[dict[str, object]]:
@@ -63,3 +151,11 @@ def scenario_table() -> list[dict[str, object]]:
         }
         for s in SCENARIOS.values()
     ]
+
+
+SIZE_RULE = (
+    f"paper-N for any N in 2..{MAX_ROVERS}: N rovers, N POIs, N traps; the map is [-1, 1]^2 up to N = "
+    f"{DENSE_UP_TO} and grows beyond it to keep paper-{DENSE_UP_TO}'s density (half-width sqrt(N / {DENSE_UP_TO})). "
+    "A range paper-A..B or a list paper-A,B,C trains one policy on every size in it."
+)
+"""What ``roverswarm scenarios`` says of the sizes beyond the listed presets."""

@@ -1,0 +1,104 @@
+"""The entity view: each rover sees itself and a padded set of typed entity tokens.
+
+Shape legend
+    N  rovers (the layout's maximum in a padded layout), P  POIs, T  traps,
+    M  tokens per rover = (N - 1) + P + T: the other rovers, then the POIs, then the traps,
+    F  features per token = :data:`TOKEN_FEATURES`.
+
+Per rover i (pure JAX, jittable, vmappable; leading batch axes come only from vmap):
+
+* ``own`` [N, 4]: its velocity and position (the flat view's first four numbers);
+* ``tokens`` [N, M, 9], one per other entity, ``[dx, dy, dvx, dvy, is_rover, is_poi, is_trap,
+  radius, flag]``: position and velocity relative to rover i (velocity 0 for POIs and traps,
+  which never move), the type as a one-hot, the entity's radius (a rover's body, a POI's
+  observation radius, a trap's radius) and a flag (a rover: it has failed; a POI: it has been
+  observed this episode; a trap: 0). Other rovers in index order skipping i, then POIs, traps;
+* ``mask`` [N, M] bool: the token is an entity that exists. In an unpadded layout every token
+  exists; in a padded one the slots past the active counts do not (their features are zeros),
+  and the rows of rovers that do not exist are all False.
+
+It holds everything the flat view does (the flat view is its positions, relative to the rover,
+in the same order; nearest first is a sort of each type by distance) and more: the others'
+velocities, who has failed and which POIs are done. Read as a set, it is the same under any
+permutation of the layout's POIs, traps and other rovers, and it has no rover index, so a
+network over it (:mod:`roverswarm.algos.entity`) serves any swarm size.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from roverswarm.env.mars import EnvParams, EnvState, masks_of, observe_radii, other_rovers, trap_radii
+
+OWN_FEATURES = 4
+"""Own velocity (2) and position (2)."""
+TOKEN_FEATURES = 9
+"""Relative position (2), relative velocity (2), type one-hot (3), radius, flag."""
+ROVER, POI, TRAP = 0, 1, 2
+"""Positions of the type one-hot in a token's features (after the first four)."""
+
+
+@struct.dataclass
+class EntityView:
+    """What every rover sees, as entities (leading batch axes only under vmap)."""
+
+    own: jax.Array  # [N, OWN_FEATURES]
+    tokens: jax.Array  # [N, M, TOKEN_FEATURES]
+    mask: jax.Array  # [N, M] bool
+
+
+def token_count(params: EnvParams) -> int:
+    """M: tokens per rover, (N - 1) + P + T of the layout's (maximum) counts."""
+    return params.num_rovers - 1 + params.num_pois + params.num_traps
+
+
+def _tokens(rel_pos: jax.Array, rel_vel: jax.Array, kind: int, radius: jax.Array, flag: jax.Array) -> jax.Array:
+    """[N, K, 2], [N, K, 2], a type, [N, K] radius and flag -> [N, K, TOKEN_FEATURES]."""
+    one_hot = jnp.broadcast_to(jax.nn.one_hot(kind, 3, dtype=rel_pos.dtype), (*rel_pos.shape[:2], 3))
+    return jnp.concatenate([rel_pos, rel_vel, one_hot, radius[..., None], flag[..., None]], axis=-1)
+
+
+def observe_entities(state: EnvState, params: EnvParams) -> EntityView:
+    """The entity view of every rover in ``state`` (see the module docstring for the features)."""
+    n, p, t = params.num_rovers, params.num_pois, params.num_traps
+    pos, vel = state.rover_pos, state.rover_vel
+    others = other_rovers(n)  # [N, N - 1]
+    failed = (state.time >= state.fail_step).astype(pos.dtype)
+    rovers = _tokens(
+        pos[others] - pos[:, None],
+        vel[others] - vel[:, None],
+        ROVER,
+        jnp.full((n, n - 1), params.rover_radius, pos.dtype),
+        failed[others],
+    )
+    zero_vel = jnp.zeros((n, 1, 2), pos.dtype)
+    pois = _tokens(
+        state.poi_pos[None] - pos[:, None],
+        jnp.broadcast_to(zero_vel, (n, p, 2)),
+        POI,
+        jnp.broadcast_to(observe_radii(params), (n, p)),
+        jnp.broadcast_to(state.observed.astype(pos.dtype), (n, p)),
+    )
+    traps = _tokens(
+        state.trap_pos[None] - pos[:, None],
+        jnp.broadcast_to(zero_vel, (n, t, 2)),
+        TRAP,
+        jnp.broadcast_to(trap_radii(params), (n, t)),
+        jnp.zeros((n, t), pos.dtype),
+    )
+    tokens = jnp.concatenate([rovers, pois, traps], axis=1)
+    own = jnp.concatenate([vel, pos], axis=-1)
+    masks = masks_of(state)
+    if masks is None:
+        return EntityView(own=own, tokens=tokens, mask=jnp.ones(tokens.shape[:2], bool))
+    exists = jnp.concatenate(
+        [masks.rovers[others], jnp.broadcast_to(masks.pois, (n, p)), jnp.broadcast_to(masks.traps, (n, t))], axis=1
+    )
+    exists = exists & masks.rovers[:, None]
+    return EntityView(
+        own=jnp.where(masks.rovers[:, None], own, 0.0),
+        tokens=jnp.where(exists[..., None], tokens, 0.0),
+        mask=exists,
+    )
