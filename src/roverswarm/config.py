@@ -204,20 +204,10 @@ def validate(config: TrainConfig) -> EnvParams:
     else:
         params = parse_mission_text(config.mission_text, config.mission).training_params()
     params = params.replace(nearest_first=config.nearest_first)
-    learner, replay = config.learner, config.buffer
+    learner = config.learner
     require(learner.algo in ALGOS, f"--algo must be one of {', '.join(ALGOS)}, got '{learner.algo}'")
     _algo_options(config)
-    require(replay.replay in ("uniform", "ranked"), f"--replay must be 'uniform' or 'ranked', got '{replay.replay}'")
-    require(replay.reading in ("paper", "schaul"), f"--reading must be 'paper' or 'schaul', got '{replay.reading}'")
-    require(replay.alpha >= 0, f"--alpha must be >= 0, got {replay.alpha}")
-    require(
-        0 <= replay.importance_exponent <= 1,
-        f"--importance-exponent must be in [0, 1], got {replay.importance_exponent}",
-    )
-    require(0 <= replay.beta <= 1, f"--beta must be in [0, 1], got {replay.beta}")
-    _positive(config, ("episodes", "seeds", "num_envs", "update_every", "log_every", "checkpoint_every"))
-    _positive(replay, ("batch_size", "buffer_size", "refresh_every"))
-    require(config.warmup >= 0, f"--warmup must be >= 0, got {config.warmup}")
+    _positive(config, ("episodes", "seeds", "num_envs", "log_every", "checkpoint_every"))
     _finite(config.checkpoint_minutes, 0, "checkpoint-minutes")
     require(0 <= config.fail_rate <= 1, f"--fail-rate must be in [0, 1] (a probability per episode), got {config.fail_rate}")
     require(config.size_curriculum >= 0, f"--size-curriculum must be >= 0 episodes, got {config.size_curriculum}")
@@ -233,10 +223,6 @@ def validate(config: TrainConfig) -> EnvParams:
     require(entity.entity_layers >= 0, f"--entity-layers must be >= 0, got {entity.entity_layers}")
     require(entity.entity_nearest >= 0, f"--entity-nearest must be >= 0 (0: every entity), got {entity.entity_nearest}")
     require(
-        replay.batch_size <= replay.buffer_size,
-        f"--batch-size ({replay.batch_size}) must not exceed --buffer-size ({replay.buffer_size})",
-    )
-    require(
         config.log_every % config.num_envs == 0,
         f"--log-every ({config.log_every}) must be a multiple of --num-envs ({config.num_envs})",
     )
@@ -244,53 +230,11 @@ def validate(config: TrainConfig) -> EnvParams:
         config.episodes % config.log_every == 0,
         f"--episodes ({config.episodes}) must be a multiple of --log-every ({config.log_every})",
     )
-    steps = config.num_envs * params.max_steps
-    require(
-        steps % config.update_every == 0,
-        f"--num-envs x episode length ({steps}) must be a multiple of --update-every ({config.update_every})",
-    )
-    for name in ("actor_lr", "critic_lr", "tau", "grad_clip"):
+    for name in ("actor_lr", "critic_lr", "grad_clip"):
         value = getattr(learner, name)
         require(value > 0, f"--{name.replace('_', '-')} must be positive, got {value}")
-    require(learner.tau <= 1, f"--tau must be in (0, 1] (the share of the new weights per update), got {learner.tau}")
-    require(learner.ensemble >= 1, f"--ensemble must be >= 1 (sub-policies per agent), got {learner.ensemble}")
-    require(learner.infer_entropy >= 0, f"--infer-entropy must be >= 0, got {learner.infer_entropy}")
-    require(learner.infer_window >= 1, f"--infer-window must be >= 1 transition, got {learner.infer_window}")
-    require(
-        not learner.infer_policies or learner.algo == "maddpg",
-        "--infer-policies needs --algo maddpg: a DDPG critic never sees the other agents' actions",
-    )
-    require(
-        not learner.infer_policies or params.num_rovers >= 2,
-        "--infer-policies needs at least 2 rovers: there is no other agent to infer",
-    )
-    require(
-        not learner.share_parameters or (learner.ensemble == 1 and not learner.infer_policies),
-        "--share-parameters does not compose with --ensemble > 1 or --infer-policies (they need one network per agent)",
-    )
-    require(
-        0 <= learner.critic_neighbors < params.num_rovers,
-        f"--critic-neighbors must be in [0, {params.num_rovers - 1}]: the other rovers each critic sees besides its "
-        f"own, of {params.num_rovers} (0 = all), got {learner.critic_neighbors}",
-    )
-    require(
-        not learner.critic_neighbors or learner.algo == "maddpg",
-        "--critic-neighbors needs --algo maddpg: a DDPG critic sees no other rover",
-    )
-    require(learner.actor_delay >= 1, f"--actor-delay must be >= 1, got {learner.actor_delay}")
-    _finite(learner.target_noise, 0, "target-noise")
-    _finite(learner.target_noise_clip, 0, "target-noise-clip")
-    _finite(learner.reward_scale, 0, "reward-scale", strict=True)
     _finite(learner.trap_shaping, 0, "trap-shaping")
-    require(
-        replay.buffer_size >= steps,
-        f"--buffer-size ({replay.buffer_size}) must hold one iteration's transitions (--num-envs x "
-        f"episode length = {steps})",
-    )
     require(0 <= learner.gamma <= 1, f"--gamma must be in [0, 1], got {learner.gamma}")
-    for name in ("noise_std", "noise_final", "noise_decay_episodes"):
-        value = getattr(config, name)
-        require(value >= 0, f"--{name.replace('_', '-')} must be >= 0, got {value}")
     learner_family(learner.algo).check(config, params)
     return params
 

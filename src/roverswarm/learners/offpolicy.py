@@ -38,7 +38,7 @@ from roverswarm.buffers.base import (
     recent_indices,
 )
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, reset, step_env
-from roverswarm.errors import require
+from roverswarm.errors import require, require_finite, require_positive
 from roverswarm.learners.base import Family, Runner, seed_keys, start_runner
 from roverswarm.metrics import episode_totals, reduce_metric, shaped_rewards, step_stats
 
@@ -77,6 +77,75 @@ def run_replay(config, params: EnvParams) -> ReplayConfig:
     numbers from a fraction of the memory."""
     capacity = min(config.buffer.buffer_size, config.episodes * params.max_steps)
     return dataclasses.replace(config.buffer, buffer_size=capacity)
+
+
+def check(config, params: EnvParams) -> None:
+    """The replay, exploration and MADDPG options of run ``config`` (a ``TrainConfig``) are in
+    range and compose; else :class:`UserError` naming the option."""
+    learner, replay = config.learner, config.buffer
+    steps = config.num_envs * params.max_steps
+    require(
+        learner.network == "mlp" and config.fail_rate == 0,
+        f"--network {learner.network} / --fail-rate {config.fail_rate}: --algo {learner.algo} has only the "
+        "flat view's networks and no failures yet; use --algo mappo or ippo (--preset anysize)",
+    )
+    require(replay.replay in ("uniform", "ranked"), f"--replay must be 'uniform' or 'ranked', got '{replay.replay}'")
+    require(replay.reading in ("paper", "schaul"), f"--reading must be 'paper' or 'schaul', got '{replay.reading}'")
+    require(replay.alpha >= 0, f"--alpha must be >= 0, got {replay.alpha}")
+    require(
+        0 <= replay.importance_exponent <= 1,
+        f"--importance-exponent must be in [0, 1], got {replay.importance_exponent}",
+    )
+    require(0 <= replay.beta <= 1, f"--beta must be in [0, 1], got {replay.beta}")
+    require_positive(config, ("update_every",))
+    require_positive(replay, ("batch_size", "buffer_size", "refresh_every"))
+    require(config.warmup >= 0, f"--warmup must be >= 0, got {config.warmup}")
+    require(
+        replay.batch_size <= replay.buffer_size,
+        f"--batch-size ({replay.batch_size}) must not exceed --buffer-size ({replay.buffer_size})",
+    )
+    require(
+        steps % config.update_every == 0,
+        f"--num-envs x episode length ({steps}) must be a multiple of --update-every ({config.update_every})",
+    )
+    require(learner.tau > 0, f"--tau must be positive, got {learner.tau}")
+    require(learner.tau <= 1, f"--tau must be in (0, 1] (the share of the new weights per update), got {learner.tau}")
+    require(learner.ensemble >= 1, f"--ensemble must be >= 1 (sub-policies per agent), got {learner.ensemble}")
+    require(learner.infer_entropy >= 0, f"--infer-entropy must be >= 0, got {learner.infer_entropy}")
+    require(learner.infer_window >= 1, f"--infer-window must be >= 1 transition, got {learner.infer_window}")
+    require(
+        not learner.infer_policies or learner.algo == "maddpg",
+        "--infer-policies needs --algo maddpg: a DDPG critic never sees the other agents' actions",
+    )
+    require(
+        not learner.infer_policies or params.num_rovers >= 2,
+        "--infer-policies needs at least 2 rovers: there is no other agent to infer",
+    )
+    require(
+        not learner.share_parameters or (learner.ensemble == 1 and not learner.infer_policies),
+        "--share-parameters does not compose with --ensemble > 1 or --infer-policies (they need one network per agent)",
+    )
+    require(
+        0 <= learner.critic_neighbors < params.num_rovers,
+        f"--critic-neighbors must be in [0, {params.num_rovers - 1}]: the other rovers each critic sees besides its "
+        f"own, of {params.num_rovers} (0 = all), got {learner.critic_neighbors}",
+    )
+    require(
+        not learner.critic_neighbors or learner.algo == "maddpg",
+        "--critic-neighbors needs --algo maddpg: a DDPG critic sees no other rover",
+    )
+    require(learner.actor_delay >= 1, f"--actor-delay must be >= 1, got {learner.actor_delay}")
+    require_finite(learner.target_noise, 0, "target-noise")
+    require_finite(learner.target_noise_clip, 0, "target-noise-clip")
+    require_finite(learner.reward_scale, 0, "reward-scale", strict=True)
+    require(
+        replay.buffer_size >= steps,
+        f"--buffer-size ({replay.buffer_size}) must hold one iteration's transitions (--num-envs x "
+        f"episode length = {steps})",
+    )
+    for name in ("noise_std", "noise_final", "noise_decay_episodes"):
+        value = getattr(config, name)
+        require(value >= 0, f"--{name.replace('_', '-')} must be >= 0, got {value}")
 
 
 def configure(config, params: EnvParams) -> OffPolicyConfig:
@@ -286,16 +355,6 @@ def metric_names(learner: AlgoConfig) -> tuple[str, ...]:
 def _act(learner: AlgoConfig, weights, obs: jax.Array, plan) -> jax.Array:
     actor, obs_norm = weights
     return act(learner, actor, obs, plan, obs_norm)
-
-
-def check(config, params: EnvParams) -> None:
-    """What the off-policy family cannot do yet (the replay's and MADDPG's options are checked
-    in :func:`roverswarm.config.validate`)."""
-    require(
-        config.learner.network == "mlp" and config.fail_rate == 0,
-        f"--network {config.learner.network} / --fail-rate {config.fail_rate}: --algo {config.learner.algo} has "
-        "only the flat view's networks and no failures yet; use --algo mappo or ippo (--preset anysize)",
-    )
 
 
 FAMILY = Family(
