@@ -37,7 +37,7 @@ class TrainConfig:
 
     scenario: str = DEFAULT_SCENARIO
     """Scenario (see `roverswarm scenarios`): a preset, paper-N, or a range paper-A..B (or list
-    paper-A,B,C) whose every episode draws its swarm size (needs --network entity)."""
+    paper-A,B,C) whose every episode draws its swarm size (needs --network entity or nearest)."""
     mission: str | None = None
     """Mission file (YAML/JSON) to train on instead of --scenario (give one of them): its
     POIs and traps fixed, rover starts drawn anywhere in the map, fixed-length episodes.
@@ -130,11 +130,14 @@ IPPO = dataclasses.replace(MAPPO, learner=dataclasses.replace(MAPPO.learner, alg
 ANYSIZE = dataclasses.replace(
     MAPPO,
     scenario="paper-2..10",
-    learner=dataclasses.replace(MAPPO.learner, network="entity", entity_dim=32, entity_heads=2, entity_layers=1),
+    episodes=20_000,
+    learner=dataclasses.replace(MAPPO.learner, network="nearest", entity_nearest=4),
 )
-"""One policy for every swarm size: MAPPO with entity networks (attention over the other
-rovers, POIs and traps, no rover ids) trained on swarms of 2 to 10 rovers, a size drawn per
-episode (``docs/results/any-size/``)."""
+"""One policy for every swarm size: MAPPO whose actor and value see each rover's 4 nearest
+other rovers, POIs and traps (nearest first, no rover ids), trained on swarms of 2 to 10
+rovers, a size drawn per episode (``docs/results/any-size/``). Attention over every entity
+(``--network entity``) is the other encoder; at the preset's batch it cost 13 to 30 times as
+much per update here (docs/results/any-size/README.md)."""
 
 PRESETS: dict[str, TrainConfig] = {
     "default": TrainConfig(),
@@ -192,8 +195,8 @@ def validate(config: TrainConfig) -> EnvParams:
     )
     if config.mission is None and range_sizes(config.scenario) is not None:
         require(
-            config.learner.network == "entity",
-            f"--scenario {config.scenario} draws a swarm size per episode: it needs --network entity "
+            config.learner.network in ("entity", "nearest"),
+            f"--scenario {config.scenario} draws a swarm size per episode: it needs --network entity or nearest "
             "(networks that serve any size; start from --preset anysize)",
         )
         params = padded_scenario(config.scenario)
@@ -222,6 +225,10 @@ def validate(config: TrainConfig) -> EnvParams:
     )
     require(entity.entity_layers >= 0, f"--entity-layers must be >= 0, got {entity.entity_layers}")
     require(entity.entity_nearest >= 0, f"--entity-nearest must be >= 0 (0: every entity), got {entity.entity_nearest}")
+    require(
+        entity.network != "nearest" or entity.entity_nearest >= 1,
+        f"--network nearest needs --entity-nearest K >= 1 (how many of each type a rover sees), got {entity.entity_nearest}",
+    )
     require(
         config.log_every % config.num_envs == 0,
         f"--log-every ({config.log_every}) must be a multiple of --num-envs ({config.num_envs})",

@@ -83,10 +83,11 @@ class AlgoConfig:
     """Standardise observations by a running mean and variance (kept in checkpoints)."""
     reward_scale: float = 1.0
     """Rewards are multiplied by this before the critic's targets."""
-    network: Literal["mlp", "entity"] = "mlp"
+    network: Literal["mlp", "entity", "nearest"] = "mlp"
     """`mlp`: networks on the flat view, tied to the swarm size they trained on; `entity`:
-    attention over the entity view (other rovers, POIs, traps as tokens, no rover ids), one
-    set of weights for any swarm size (MAPPO and IPPO)."""
+    attention over the entity view (other rovers, POIs, traps as tokens, no rover ids);
+    `nearest`: an MLP over the --entity-nearest K nearest of each type, nearest first. The last
+    two serve any swarm size (MAPPO and IPPO)."""
     entity_dim: int = 64
     """--network entity: width of the entity embeddings (the encoder's output is twice this)."""
     entity_heads: int = 4
@@ -95,7 +96,8 @@ class AlgoConfig:
     """--network entity: self-attention blocks among the tokens before the pooling (0: embed and pool)."""
     entity_nearest: int = 0
     """--network entity: each rover sees only the nearest this many other rovers, POIs and traps
-    (each type); 0 = every entity. Keeps the cost of a step constant in the swarm's size."""
+    (each type); 0 = every entity (keeps the cost of a step constant in the swarm's size).
+    --network nearest: how many of each type it sees (>= 1)."""
     trap_shaping: float = 0.0
     """Reward shaping: the learner trains on the environment's reward less this much more per
     trap a rover touches per step (the environment charges 1); what it reports, and every

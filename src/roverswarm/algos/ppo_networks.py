@@ -9,6 +9,12 @@ Shape legend: N rovers, O flat observation size, A action size (2), M entity tok
   attention over it (:mod:`roverswarm.algos.entity`): no rover index anywhere, so the same
   weights drive any number of rovers. Each rover's view already holds every entity relative
   to it, so MAPPO's and IPPO's values see the same input (the rover's view).
+  ``--entity-nearest K`` cuts the view to the K nearest of each type.
+- ``nearest`` (``--network nearest``): the K nearest other rovers, POIs and traps
+  (``--entity-nearest K``), nearest first within each type, as one vector of fixed width
+  (empty slots zero, with the mask), read by the flat view's MLPs. Sorting makes it
+  permutation-invariant and the width does not depend on N: another encoder for any swarm
+  size, a fraction of attention's cost.
 
 Both are Gaussian policies with a learned, state-independent log-std (``log_std`` [A]).
 """
@@ -173,7 +179,42 @@ def _entity_kind(learner: AlgoConfig, config: PPOConfig) -> PolicyNetworks:
     )
 
 
-KINDS: dict[str, Callable[[AlgoConfig, Any], PolicyNetworks]] = {"mlp": _mlp_kind, "entity": _entity_kind}
+def flat_tokens(view) -> jax.Array:
+    """An entity view [..., M, F] as one vector per rover [..., 4 + M * F + M]: own features,
+    the tokens (zero where empty) in their order, and the mask."""
+    tokens = jnp.where(view.mask[..., None], view.tokens, 0.0)
+    flat = tokens.reshape(*tokens.shape[:-2], -1)
+    return jnp.concatenate([view.own, flat, view.mask.astype(flat.dtype)], axis=-1)
+
+
+def _nearest_kind(learner: AlgoConfig, config: PPOConfig) -> PolicyNetworks:
+    actor_net, critic_net = networks(learner, config)
+    k = learner.entity_nearest
+
+    def view(state, params):
+        return nearest_entities(observe_entities(state, params), params, k)
+
+    def init(key, num_rovers, obs_size):
+        k_actor, k_critic = jax.random.split(key)
+        x = jnp.zeros((4 + 3 * k * 10,))
+        return actor_net.init(k_actor, x), critic_net.init(k_critic, x)
+
+    return PolicyNetworks(
+        observe=view,
+        actor_inputs=flat_tokens,
+        critic_inputs=flat_tokens,
+        init=init,
+        policy=actor_net.apply,
+        value=lambda params, inputs: critic_net.apply(params, inputs)[..., 0],
+        any_size=True,
+    )
+
+
+KINDS: dict[str, Callable[[AlgoConfig, Any], PolicyNetworks]] = {
+    "mlp": _mlp_kind,
+    "entity": _entity_kind,
+    "nearest": _nearest_kind,
+}
 """``--network`` -> its on-policy network kind."""
 
 

@@ -105,17 +105,22 @@ def observe_entities(state: EnvState, params: EnvParams) -> EntityView:
 
 
 def nearest_entities(view: EntityView, params: EnvParams, k: int) -> EntityView:
-    """The view cut to at most ``k`` tokens of each type (other rovers, POIs, traps), the
-    nearest ones that exist, in that order and nearest first within a type: [N, M_k, F] with
-    M_k = min(k, N - 1) + min(k, P) + min(k, T), whatever the layout's maxima. A network's
-    cost then stops growing with the swarm; the far entities are out of sight."""
+    """The view cut to ``k`` tokens of each type (other rovers, POIs, traps): the nearest ones
+    that exist, in that order and nearest first within a type, then empty (masked, zero)
+    tokens if a type has fewer: [N, 3k, F] whatever the layout's maxima. A network's cost then
+    stops growing with the swarm, and its input has one width for every size; the far
+    entities are out of sight."""
     n, p = params.num_rovers, params.num_pois
     groups = ((0, n - 1), (n - 1, n - 1 + p), (n - 1 + p, token_count(params)))
     tokens, masks = [], []
     for start, stop in groups:
         group, exists = view.tokens[..., start:stop, :], view.mask[..., start:stop]
+        missing = max(k - (stop - start), 0)  # a type with fewer than k slots: pad it to k
+        group = jnp.concatenate([group, jnp.zeros((*group.shape[:-2], missing, group.shape[-1]), group.dtype)], -2)
+        exists = jnp.concatenate([exists, jnp.zeros((*exists.shape[:-1], missing), bool)], -1)
         dist = jnp.where(exists, jnp.sum(jnp.square(group[..., :2]), axis=-1), jnp.inf)
-        order = jnp.argsort(dist, axis=-1, stable=True)[..., : min(k, stop - start)]
-        tokens.append(jnp.take_along_axis(group, order[..., None], axis=-2))
-        masks.append(jnp.take_along_axis(exists, order, axis=-1))
+        order = jnp.argsort(dist, axis=-1, stable=True)[..., :k]
+        exists = jnp.take_along_axis(exists, order, axis=-1)
+        tokens.append(jnp.where(exists[..., None], jnp.take_along_axis(group, order[..., None], axis=-2), 0.0))
+        masks.append(exists)
     return EntityView(own=view.own, tokens=jnp.concatenate(tokens, axis=-2), mask=jnp.concatenate(masks, axis=-1))
