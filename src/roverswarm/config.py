@@ -135,9 +135,9 @@ ANYSIZE = dataclasses.replace(
 )
 """One policy for every swarm size: MAPPO whose actor and value see each rover's 4 nearest
 other rovers, POIs and traps (nearest first, no rover ids), trained on swarms of 2 to 10
-rovers, a size drawn per episode (``docs/results/any-size/``). Attention over every entity
-(``--network entity``) is the other encoder; at the preset's batch it cost 13 to 30 times as
-much per update here (docs/results/any-size/README.md)."""
+rovers, a size drawn per episode (``docs/results/any-size/``). Attention over the entities
+(``--network entity``) is the other encoder; one update cost 13 to 43 times as much here
+(docs/results/any-size/README.md), too slow for a 5-seed run in one session so far."""
 
 PRESETS: dict[str, TrainConfig] = {
     "default": TrainConfig(),

@@ -108,8 +108,8 @@ class OnPolicyConfig:
     seeds: int
     num_envs: int
     log_every: int
-    sizes: tuple[int, ...] | None = None
-    """Swarm sizes each environment draws from per episode (a range scenario); None: one size."""
+    scenario: str = "paper-3"
+    mission: str | None = None
     size_curriculum: int = 0
     fail_rate: float = 0.0
 

@@ -98,10 +98,13 @@ def check(config, params: EnvParams) -> None:
 
 
 def configure(config, params: EnvParams) -> OnPolicyConfig:
-    """The on-policy config of run ``config`` (a ``TrainConfig``): its fields of the same
-    names, and the swarm sizes its scenario draws from."""
-    fields = {f.name: getattr(config, f.name) for f in dataclasses.fields(OnPolicyConfig) if f.name != "sizes"}
-    return OnPolicyConfig(**fields, sizes=None if config.mission is not None else range_sizes(config.scenario))
+    """The on-policy config of run ``config`` (a ``TrainConfig``)."""
+    return OnPolicyConfig(**{f.name: getattr(config, f.name) for f in dataclasses.fields(OnPolicyConfig)})
+
+
+def sizes_of(config: OnPolicyConfig) -> tuple[int, ...] | None:
+    """The swarm sizes each environment draws from per episode (a range scenario); None: one size."""
+    return None if config.mission is not None else range_sizes(config.scenario)
 
 
 def init(config: OnPolicyConfig, params: EnvParams, seed: int) -> Runner:
@@ -125,22 +128,23 @@ def _where_env(done: jax.Array, old, new):
 def size_cap(config: OnPolicyConfig, episodes: jax.Array) -> jax.Array:
     """The largest swarm size drawn after ``episodes`` episodes: with --size-curriculum E, it
     grows linearly from the range's smallest to its largest over the first E episodes."""
-    low, high = config.sizes[0], config.sizes[-1]
+    low, high = sizes_of(config)[0], sizes_of(config)[-1]
     if config.size_curriculum == 0:
         return jnp.asarray(high)
     return low + jnp.minimum(episodes / config.size_curriculum, 1.0) * (high - low)
 
 
 def _reset_all(config: OnPolicyConfig, params: EnvParams, key: jax.Array, episodes: jax.Array):
-    """E fresh episodes: of one size, or each of a size drawn from ``config.sizes`` (up to
+    """E fresh episodes: of one size, or each of a size drawn from :func:`sizes_of` (up to
     :func:`size_cap`); with --fail-rate, one rover may fail in each."""
     if config.fail_rate > 0:
         params = params.replace(fail_rate=config.fail_rate)
     k_sizes, k_reset = jax.random.split(key)
     keys = jax.random.split(k_reset, config.num_envs)
-    if config.sizes is None:
+    sizes = sizes_of(config)
+    if sizes is None:
         return jax.vmap(reset, in_axes=(0, None))(keys, params)[1]
-    counts = draw_sizes(k_sizes, config.sizes, config.num_envs, size_cap(config, episodes))
+    counts = draw_sizes(k_sizes, sizes, config.num_envs, size_cap(config, episodes))
     return jax.vmap(lambda k, n: reset(k, sized(params, n)))(keys, counts)[1]
 
 
