@@ -63,37 +63,67 @@ LOCK = ".lock"
 
 @contextlib.contextmanager
 def folder_lock(folder: Path) -> Iterator[None]:
-    """Create ``folder`` if needed and hold ``folder/.lock`` (the writer's process id and host)
-    while writing it: a second writer gets :class:`UserError` instead of mixing its files
-    with the first's. A lock whose process is gone (a killed run, on this host) is taken over.
-    A folder created here and left empty is removed again."""
+    """Create ``folder`` if needed and hold ``folder/.lock`` while writing it: a second writer
+    gets :class:`UserError` instead of mixing its files with the first's.
+
+    The lock is ``fcntl.flock`` on the open file, held for the writer's life: taking it is
+    atomic, and the kernel releases it when the process ends however it ends, so a stale
+    ``.lock`` (a killed run) is simply taken over, by exactly one of several writers started
+    together. The file holds the writer's process id and host, for the message; a ``.lock``
+    naming a live process on this host that does not hold the flock (an older roverswarm)
+    is respected too. A folder created here and left empty is removed again."""
+    import fcntl
+
     created = not folder.exists()
     path, me = folder / LOCK, f"{os.getpid()} {socket.gethostname()}"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise UserError(f"output folder '{folder}' is a file (or lies inside one), not a folder") from None
+    except OSError as error:  # read-only file system, no permission, ...
+        raise UserError(f"output folder '{folder}' cannot be written ({error.strerror or error})") from error
+    if not folder.is_dir():
+        raise UserError(f"output folder '{folder}' is a file (or lies inside one), not a folder")
     while True:
         try:
-            folder.mkdir(parents=True, exist_ok=True)
-            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-            break
-        except FileExistsError:
-            if not folder.is_dir():
-                raise UserError(f"output folder '{folder}' is a file (or lies inside one), not a folder") from None
-            owner = _lock_owner(path)
-            if owner is not None:
-                raise UserError(
-                    f"'{folder}' is being written by process {owner} (its {LOCK}); wait for it to finish, choose "
-                    f"another --out, or delete '{path}' if that process is gone"
-                ) from None
-            path.unlink(missing_ok=True)  # stale: its writer is gone
-        except OSError as error:  # read-only file system, no permission, ...
+            fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
+        except OSError as error:
             raise UserError(f"output folder '{folder}' cannot be written ({error.strerror or error})") from error
-    with os.fdopen(fd, "w") as f:
-        f.write(me)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            raise UserError(_held(folder, path, _lock_owner(path) or "(unknown)")) from None
+        try:  # the file may have been removed and made anew by a writer that just finished: lock that one
+            same = os.fstat(fd).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        owner = _lock_owner(path)
+        if owner is not None and owner.split()[0] != str(os.getpid()):
+            raise UserError(_held(folder, path, owner))
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, me.encode(), 0)
+    except BaseException:
+        os.close(fd)
+        raise
     try:
         yield
     finally:
-        path.unlink(missing_ok=True)
-        if created and not any(folder.iterdir()):
+        path.unlink(missing_ok=True)  # while still holding the flock: a waiting writer then makes a new file
+        os.close(fd)
+        if created and folder.exists() and not any(folder.iterdir()):
             folder.rmdir()
+
+
+def _held(folder: Path, path: Path, owner: str) -> str:
+    return (
+        f"'{folder}' is being written by process {owner} (its {LOCK}); wait for it to finish, choose "
+        f"another --out, or delete '{path}' if that process is gone"
+    )
 
 
 def _lock_owner(path: Path) -> str | None:
@@ -103,8 +133,8 @@ def _lock_owner(path: Path) -> str | None:
         pid, host = path.read_text().split()
     except FileNotFoundError:
         return None
-    except ValueError:  # being written this instant, or garbage: treat as held
-        return "(unknown)"
+    except ValueError:  # empty or garbage: nobody named (the flock says whether it is held)
+        return None
     if host == socket.gethostname():
         try:
             os.kill(int(pid), 0)
