@@ -14,6 +14,7 @@ import jax
 import tyro
 
 from roverswarm.errors import require
+from roverswarm.limits import check_seed
 from roverswarm.policies import ORACLE, RANDOM
 from roverswarm.rollout import normalized_score, rollout
 from roverswarm.runs import Partners, Run, SubPolicies
@@ -51,6 +52,7 @@ def evaluate_run(
     ``normalized_score``.
     """
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
+    check_seed(seed)
     run = Run(out)
     key = jax.random.PRNGKey(seed)
     policies = run.policies(sub_policies, seed, partners)

@@ -235,6 +235,11 @@ def load_checkpoint(path: Path, template):
         flat.update(_flatten(serialization.to_state_dict(template.buffer), "buffer/"))
     for key, x in flat.items():
         if key.startswith("buffer/data/"):
+            require(
+                x.shape[1] <= capacity,
+                f"--buffer-size: this run's replay already holds {x.shape[1]} transitions per seed and the "
+                f"config gives room for {capacity}; resume with --buffer-size >= {x.shape[1]}",
+            )
             flat[key] = np.concatenate(
                 [x, np.zeros((x.shape[0], capacity - x.shape[1], *x.shape[2:]), x.dtype)], axis=1
             )

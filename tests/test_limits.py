@@ -1,0 +1,81 @@
+"""Limits on what the package reads and allocates: every refusal one line, exit 2, before work starts."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import signal
+from pathlib import Path
+
+import pytest
+import yaml
+
+from roverswarm.cli import main
+from roverswarm.config import config_to_json
+from roverswarm.errors import RunStopped
+from roverswarm.trainer import train
+
+MISSION = str(Path(__file__).parent.parent / "examples" / "mission.yaml")
+
+
+def refused(argv: list[str], message: str, capsys) -> None:
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1 and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["render", "--seed", str(2**70)],
+        ["evaluate", "some-run", "--seed", str(2**70)],
+        ["mission", "run", MISSION, "--seed", str(2**70)],
+        ["mission", "stress", MISSION, "--seed", str(2**70)],
+        ["render", "--seed", "-1"],
+    ],
+)
+def test_a_seed_a_prng_key_cannot_hold_is_one_line(argv, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    refused(argv, "--seed must be an integer in [0, 2^32)", capsys)
+
+
+@pytest.mark.parametrize(
+    "top, setting, message",
+    [
+        ({"seeds": 2.0}, {}, "seeds must be an integer, got 2.0"),
+        ({"episodes": "400"}, {}, "episodes must be an integer, got '400'"),
+        ({}, {"hidden": 64}, "setting 'a': hidden must be a list of integers, got 64"),
+        ({}, {"hidden": [64.5]}, "setting 'a': hidden must be a list of integers, got (64.5,)"),
+        ({}, {"twin_critics": "yes"}, "setting 'a': twin_critics must be true or false, got 'yes'"),
+        ({}, {"actor_lr": [1]}, "setting 'a': actor_lr must be a number, got (1,)"),
+    ],
+)
+def test_a_wrong_typed_sweep_value_is_refused_before_training(top, setting, message, tmp_path, capsys):
+    path = tmp_path / "s.yaml"
+    path.write_text(yaml.safe_dump({"scenarios": ["paper-2"], **top, "settings": {"a": setting}}))
+    refused(["sweep", str(path), "--out", str(tmp_path / "out")], message, capsys)
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_wrong_typed_config_json_is_refused_by_every_command(tiny_config, tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    raw = json.loads(config_to_json(tiny_config))
+    raw["seeds"] = 2.0
+    (run / "config.json").write_text(json.dumps(raw))
+    (run / "checkpoint.npz").write_bytes(b"")
+    for argv in (["train", "--resume", str(run)], ["evaluate", str(run)]):
+        refused(argv, "config.json: seeds must be an integer, got 2.0", capsys)
+
+
+def test_a_replay_smaller_than_what_a_resumed_run_filled_is_one_line(tiny_config, tmp_path, signal_at_chunk, capsys):
+    out = tmp_path / "run"
+    config = dataclasses.replace(tiny_config, episodes=300)
+    restore = signal_at_chunk(signal.SIGINT, 2)  # stopped after 2 chunks: 200 episodes, 5000 transitions seen
+    with pytest.raises(RunStopped):
+        train(config, out=out, progress=False)
+    restore()
+    raw = json.loads((out / "config.json").read_text())
+    raw["buffer"]["buffer_size"] = 1000
+    (out / "config.json").write_text(json.dumps(raw))
+    refused(["train", "--resume", str(out)], "holds 4000 transitions per seed", capsys)
