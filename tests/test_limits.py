@@ -79,3 +79,28 @@ def test_a_replay_smaller_than_what_a_resumed_run_filled_is_one_line(tiny_config
     raw["buffer"]["buffer_size"] = 1000
     (out / "config.json").write_text(json.dumps(raw))
     refused(["train", "--resume", str(out)], "holds 4000 transitions per seed", capsys)
+
+
+@pytest.mark.parametrize(
+    "argv, part",
+    [
+        (["train", "--hidden", "65536", "65536"], "for the networks (--hidden (65536, 65536), --ensemble 1, --seeds 1)"),
+        (["train", "--ensemble", "100000"], "--ensemble 100000, --seeds 1)"),
+        (["train", "--preset", "mappo", "--seeds", "1000000"], "--seeds 1000000)"),
+    ],
+)
+def test_memory_past_what_the_process_may_use_is_refused_before_it_is_allocated(argv, part, tmp_path, capsys):
+    """Estimated from shapes only: the test would not finish (or be killed) if any were allocated."""
+    refused([*argv, "--out", str(tmp_path / "run")], part, capsys)
+    assert not (tmp_path / "run").exists()
+
+
+def test_evaluate_refuses_a_run_or_a_batch_too_large_before_reading_its_checkpoint(tiny_config, tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "checkpoint.npz").write_bytes(b"")  # never read: the estimate comes first
+    huge = dataclasses.replace(tiny_config, learner=dataclasses.replace(tiny_config.learner, hidden=(65536, 65536)))
+    (run / "config.json").write_text(config_to_json(huge))
+    refused(["evaluate", str(run)], f"the run in '{run}' needs about", capsys)
+    (run / "config.json").write_text(config_to_json(tiny_config))
+    refused(["evaluate", str(run), "--episodes", str(2**30)], "for the evaluation batch (--episodes 1073741824)", capsys)

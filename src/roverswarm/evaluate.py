@@ -14,7 +14,7 @@ import jax
 import tyro
 
 from roverswarm.errors import require
-from roverswarm.limits import check_seed
+from roverswarm.limits import check_memory, check_seed, evaluation_parts
 from roverswarm.policies import ORACLE, RANDOM
 from roverswarm.rollout import normalized_score, rollout
 from roverswarm.runs import Partners, Run, SubPolicies
@@ -54,6 +54,7 @@ def evaluate_run(
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
     check_seed(seed)
     run = Run(out)
+    check_memory(evaluation_parts(run.config, run.params, episodes), "this evaluation")
     key = jax.random.PRNGKey(seed)
     policies = run.policies(sub_policies, seed, partners)
     results = {p.name: rollout(p, key, run.params, episodes).stats.summary() for p in (RANDOM, ORACLE, *policies)}

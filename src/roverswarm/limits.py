@@ -234,7 +234,7 @@ def training_parts(config: TrainConfig, params: EnvParams) -> list[Part]:
     else:
         from roverswarm.trainer import replay_bytes
 
-        parts.append(Part("replay", replay_bytes(config, params)[0], _options(config, "buffer_size", "seeds")))
+        parts.append(Part("replay", replay_bytes(config, params)[0], _options(config, "buffer_size", "ensemble", "seeds")))
         k = config.learner.ensemble
         rollout = seeds * steps * config.num_envs * n * (obs + k * width + ACTION_SIZE) * 4
         parts.append(Part("rollouts", rollout, _options(config, "num_envs", "ensemble", "seeds")))

@@ -26,9 +26,10 @@ from flax import serialization, struct
 from roverswarm.algos.learner import ON_POLICY, LearnerState, init_learner
 from roverswarm.algos.ppo import PPOState, init_ppo
 from roverswarm.buffers.base import BufferState
-from roverswarm.config import TrainConfig, config_from_json, validate
+from roverswarm.config import TrainConfig, validate
 from roverswarm.env.mars import EnvParams, count_text, observation_size
 from roverswarm.errors import UserError, require
+from roverswarm.limits import check_memory, evaluation_parts, read_config
 from roverswarm.policies import REFERENCE_POLICIES, Policy, mixed_policy, trained_policy
 
 
@@ -367,8 +368,9 @@ class Run:
             (self.folder / CONFIG).exists() and (self.folder / CHECKPOINT).exists(),
             f"'{self.folder}' holds no trained run (config.json and checkpoint.npz)",
         )
-        self.config: TrainConfig = config_from_json((self.folder / CONFIG).read_text())
+        self.config: TrainConfig = read_config(self.folder / CONFIG)
         self.params: EnvParams = validate(self.config)
+        check_memory(evaluation_parts(self.config, self.params, 0), f"the run in '{self.folder}'")
 
     @classmethod
     def of(cls, config: TrainConfig, learner: LearnerState, folder: str | os.PathLike = "(in memory)") -> Run:

@@ -43,6 +43,7 @@ from roverswarm.buffers.base import Buffer, BufferState, Draw, importance_weight
 from roverswarm.config import TrainConfig, config_from_json, config_to_json, fields_by_name, validate, with_mission_text
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, reset, step_env
 from roverswarm.errors import RunStopped, require
+from roverswarm.limits import check_training_memory
 from roverswarm.rollout import contact_counts, shaped_rewards
 from roverswarm.runs import (
     CHECKPOINT,
@@ -301,6 +302,7 @@ def train(
     if config.mission is not None:  # kept absolute and with its content: resume and evaluate need not find the file
         config = with_mission_text(config)
     params = validate(config)
+    check_training_memory(config, params)  # networks, replay, rollouts and minibatches, before any is allocated
     require(out is not None or not resume, "resume=True needs the run folder (--out) to resume")
     require(
         out is not None or config.episodes <= 10_000,
