@@ -12,7 +12,7 @@ import yaml
 
 from roverswarm.cli import main
 from roverswarm.config import config_to_json
-from roverswarm.errors import RunStopped
+from roverswarm.errors import RunStopped, UserError
 from roverswarm.trainer import train
 
 MISSION = str(Path(__file__).parent.parent / "examples" / "mission.yaml")
@@ -104,3 +104,39 @@ def test_evaluate_refuses_a_run_or_a_batch_too_large_before_reading_its_checkpoi
     refused(["evaluate", str(run)], f"the run in '{run}' needs about", capsys)
     (run / "config.json").write_text(config_to_json(tiny_config))
     refused(["evaluate", str(run), "--episodes", str(2**30)], "for the evaluation batch (--episodes 1073741824)", capsys)
+
+
+def test_files_past_their_limit_are_refused_without_being_read(tiny_config, tmp_path, monkeypatch, capsys):
+    """A sparse file of a few GB costs nothing to make; reading it whole would (the issue: a 1 GB
+    config.json peaked at 2.4 GB). The limits: docs/limits.md."""
+    import roverswarm.limits as limits
+    from roverswarm.runs import read_metrics, write_csv
+
+    run = tmp_path / "run"
+    run.mkdir()
+    with open(run / "config.json", "wb") as f:
+        f.truncate(3 * 2**30)
+    (run / "checkpoint.npz").write_bytes(b"")
+    for argv in (["train", "--resume", str(run)], ["evaluate", str(run)]):
+        refused(argv, f"config.json '{run / 'config.json'}' has {3 * 2**30} bytes; at most 1048576 (1 MiB)", capsys)
+    sweep = tmp_path / "s.yaml"
+    with open(sweep, "wb") as f:
+        f.truncate(2 * 2**20)
+    refused(["sweep", str(sweep), "--out", str(tmp_path / "out")], "has 2097152 bytes; at most 1048576", capsys)
+    write_csv(tmp_path / "metrics.csv", [{"seed": 0, "episodes": 100, "episode_reward": 1.0}] * 100)
+    assert len(read_metrics(tmp_path / "metrics.csv")) == 100
+    monkeypatch.setitem(limits.FILE_LIMITS, "metrics.csv", 1000)
+    with pytest.raises(UserError, match=r"metrics.csv '.*' has \d+ bytes; at most 1000"):
+        read_metrics(tmp_path / "metrics.csv")
+
+
+def test_a_file_that_grows_while_it_is_read_is_cut_at_the_limit(tmp_path, monkeypatch):
+    import roverswarm.limits as limits
+
+    path = tmp_path / "metrics.csv"
+    path.write_text("x" * 5000)
+    monkeypatch.setitem(limits.FILE_LIMITS, "metrics.csv", 1000)
+    monkeypatch.setattr(limits.os, "fstat", lambda fd: type("S", (), {"st_size": 10})())  # it was small when opened
+    with pytest.raises(UserError, match="has more than 1000 bytes"):
+        with limits.open_limited(path, "metrics.csv") as f:
+            f.read()

@@ -16,6 +16,7 @@ docs/limits.md lists every limit and what its error says.
 from __future__ import annotations
 
 import contextlib
+import io
 import math
 import os
 import re
@@ -77,8 +78,6 @@ def open_limited(path: Path, kind: str) -> Iterator[IO[str]]:
         if size > limit:
             raise _too_large(path, kind, size)
         text = _Capped(raw, limit, lambda: _too_large(path, kind, f"more than {limit}"))
-        import io
-
         yield io.TextIOWrapper(text, encoding="utf-8", newline="")  # type: ignore[arg-type]
 
 
@@ -125,7 +124,10 @@ def read_limited(path: str | os.PathLike, kind: str) -> str:
     :class:`UserError` if it is larger or not text."""
     path, limit = Path(path), FILE_LIMITS[kind]
     with open(path, "rb") as f:
-        data = f.read(limit + 1)
+        size = os.fstat(f.fileno()).st_size
+        if size > limit:
+            raise _too_large(path, kind, size)
+        data = f.read(limit + 1)  # never more, even if the file grew since
     if len(data) > limit:
         raise _too_large(path, kind, f"more than {limit}")
     try:

@@ -29,7 +29,7 @@ from roverswarm.buffers.base import BufferState
 from roverswarm.config import TrainConfig, validate
 from roverswarm.env.mars import EnvParams, count_text, observation_size
 from roverswarm.errors import UserError, require
-from roverswarm.limits import check_memory, evaluation_parts, read_config
+from roverswarm.limits import check_memory, evaluation_parts, open_limited, read_config
 from roverswarm.policies import REFERENCE_POLICIES, Policy, mixed_policy, trained_policy
 
 
@@ -314,11 +314,13 @@ def read_metrics(path: Path) -> list[dict[str, float]]:
     """The rows of a ``metrics.csv``: ``seed`` and ``episodes`` as ints, the rest as floats;
     :class:`UserError` if the file is damaged."""
     try:
-        with open(path, newline="") as f:
+        with open_limited(path, "metrics.csv") as f:
             return [
                 {k: int(float(v)) if k in COUNT_COLUMNS else float(v) for k, v in row.items()}
                 for row in csv.DictReader(f)
             ]
+    except UserError:  # past its size limit
+        raise
     except (ValueError, TypeError, UnicodeDecodeError, csv.Error) as error:
         raise UserError(f"'{path}' is damaged ({error}); it is not a roverswarm metrics file") from error
 

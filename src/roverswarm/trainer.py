@@ -40,10 +40,10 @@ from roverswarm.algos.maddpg import inference_error, update
 from roverswarm.algos.ppo import PPOState
 from roverswarm.buffers import compact, make_buffer
 from roverswarm.buffers.base import Buffer, BufferState, Draw, importance_weights, newest_fraction, recent_indices
-from roverswarm.config import TrainConfig, config_from_json, config_to_json, fields_by_name, validate, with_mission_text
+from roverswarm.config import TrainConfig, config_to_json, fields_by_name, validate, with_mission_text
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, reset, step_env
 from roverswarm.errors import RunStopped, require
-from roverswarm.limits import check_training_memory
+from roverswarm.limits import check_training_memory, read_config
 from roverswarm.rollout import contact_counts, shaped_rewards
 from roverswarm.runs import (
     CHECKPOINT,
@@ -384,7 +384,7 @@ def _train(
                 checkpoint.exists() and (out / CONFIG).exists(),
                 f"--resume: no run to continue in '{out}' (config.json and checkpoint.npz)",
             )
-            saved = fields_by_name(config_from_json((out / CONFIG).read_text()))
+            saved = fields_by_name(read_config(out / CONFIG))
             differ = [name for name, value in fields_by_name(config).items() if saved[name] != value]
             require(
                 not differ,

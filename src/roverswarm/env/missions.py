@@ -255,8 +255,11 @@ def read_mission_text(path: str | Path) -> str:
     require(path.is_file(), f"mission file '{path}' is not a file")
     size = path.stat().st_size
     require(size <= MAX_BYTES, f"mission file '{path}' has {size} bytes; at most {MAX_BYTES} are read")
+    with open(path, "rb") as f:
+        data = f.read(MAX_BYTES + 1)  # never more, even if the file grew since
+    require(len(data) <= MAX_BYTES, f"mission file '{path}' has more than {MAX_BYTES} bytes; at most {MAX_BYTES} are read")
     try:
-        return path.read_text(encoding="utf-8")
+        return data.decode("utf-8").replace("\r\n", "\n").replace("\r", "\n")  # as read_text: universal newlines
     except UnicodeDecodeError as error:
         raise UserError(f"mission file '{path}' is not valid UTF-8: {error}") from None
 

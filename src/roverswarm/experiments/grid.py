@@ -27,6 +27,7 @@ from rich.table import Table
 from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import RunStopped, UserError, require
 from roverswarm.experiments.stopping import JobsStop, start_job
+from roverswarm.limits import read_config
 from roverswarm.jaxcache import release_compiled_programs
 from roverswarm.config import PRESETS, TrainConfig, config_from_json, config_to_json, with_options, validate
 from roverswarm.runs import CHECKPOINT, CONFIG, METRICS, read_metrics
@@ -284,7 +285,7 @@ def status(run: GridRun) -> Literal["done", "partial", "new"]:
     another --out), never silently overwritten."""
     if not (run.folder / CONFIG).exists():
         return "new"
-    saved = config_from_json((run.folder / CONFIG).read_text())
+    saved = read_config(run.folder / CONFIG)
     if saved != run.config:
         raise UserError(
             f"'{run.folder}' holds a run with other settings; rerun with --force to replace it, or choose another --out"

@@ -43,7 +43,7 @@ from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
 from roverswarm.experiments.grid import GridRun, Summary, check_jobs, default_jobs, status, train_runs
 from roverswarm.config import PRESETS, validate, with_options
-from roverswarm.limits import check_memory, read_limited, safe_name, training_parts
+from roverswarm.limits import check_memory, open_limited, read_limited, safe_name, training_parts
 from roverswarm.runs import METRICS, atomic_write, folder_lock, markdown_table, read_metrics, write_csv
 
 EVALUATION = "evaluation.csv"
@@ -256,7 +256,7 @@ def read_table(path: Path) -> list[dict[str, object]]:
                 pass
         return text
 
-    with open(path, newline="") as f:
+    with open_limited(path, "evaluation table") as f:
         return [{k: value(v) for k, v in row.items()} for row in csv.DictReader(f)]
 
 
