@@ -68,17 +68,67 @@ def test_a_wrong_typed_config_json_is_refused_by_every_command(tiny_config, tmp_
         refused(argv, "config.json: seeds must be an integer, got 2.0", capsys)
 
 
-def test_a_replay_smaller_than_what_a_resumed_run_filled_is_one_line(tiny_config, tmp_path, signal_at_chunk, capsys):
-    out = tmp_path / "run"
+@pytest.fixture(scope="module")
+def interrupted(tiny_config, tmp_path_factory):
+    """A tiny run stopped after 2 of 3 chunks (200 episodes: 5000 transitions seen, 4000 kept)."""
+    import os
+
+    import roverswarm.trainer as trainer
+
+    out = tmp_path_factory.mktemp("interrupted") / "run"
     config = dataclasses.replace(tiny_config, episodes=300)
-    restore = signal_at_chunk(signal.SIGINT, 2)  # stopped after 2 chunks: 200 episodes, 5000 transitions seen
-    with pytest.raises(RunStopped):
-        train(config, out=out, progress=False)
-    restore()
+    real, calls = trainer.run_chunk, []
+
+    def signalled(*args):
+        calls.append(1)
+        if len(calls) == 2:
+            os.kill(os.getpid(), signal.SIGINT)
+        return real(*args)
+
+    trainer.run_chunk = signalled
+    try:
+        with pytest.raises(RunStopped):
+            train(config, out=out, progress=False)
+    finally:
+        trainer.run_chunk = real
+    return config, out
+
+
+def test_a_replay_smaller_than_what_a_resumed_run_filled_is_one_line(interrupted):
+    from roverswarm.config import validate, with_options
+    from roverswarm.runs import load_checkpoint
+    from roverswarm.trainer import init_runner, run_buffer
+
+    config, out = interrupted
+    smaller = with_options(config, {"buffer_size": 1000})
+    params = validate(smaller)
+    template = init_runner(smaller, params, run_buffer(smaller, params))
+    with pytest.raises(UserError, match="already holds 4000 transitions per seed .* --buffer-size >= 4000"):
+        load_checkpoint(out / "checkpoint.npz", template)
+
+
+def test_an_edited_config_json_or_another_presets_learner_is_not_resumed(interrupted, tmp_path, capsys):
+    import shutil
+
+    _, run = interrupted
+    out = tmp_path / "run"
+    shutil.copytree(run, out)
+    refused(["train", "--resume", str(out), "--preset", "mappo"], "is --algo maddpg and --preset mappo trains", capsys)
     raw = json.loads((out / "config.json").read_text())
+    raw["learner"]["actor_lr"] = 0.5
     raw["buffer"]["buffer_size"] = 1000
     (out / "config.json").write_text(json.dumps(raw))
-    refused(["train", "--resume", str(out)], "holds 4000 transitions per seed", capsys)
+    refused(["train", "--resume", str(out)], "was edited since its checkpoint was written (actor_lr, buffer_size)", capsys)
+
+
+def test_the_learning_curve_is_not_written_through_a_symlink(tmp_path):
+    from roverswarm.runs import plot_learning_curve
+
+    victim = tmp_path / "victim.txt"
+    victim.write_text("mine")
+    (tmp_path / "learning_curve.png").symlink_to(victim)
+    plot_learning_curve([{"seed": 0, "episodes": 100, "episode_reward": 1.0}], tmp_path / "learning_curve.png", "t")
+    assert victim.read_text() == "mine" and not (tmp_path / "learning_curve.png").is_symlink()
 
 
 @pytest.mark.parametrize(

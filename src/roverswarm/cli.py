@@ -63,6 +63,12 @@ def run_train(cmd: TrainCommand) -> None:
         require((cmd.resume / CONFIG).exists(), f"--resume: '{cmd.resume}' holds no config.json")
         require(cmd.out in (None, cmd.resume), "--out and --resume name different folders")
         saved = read_config(cmd.resume / CONFIG)
+        algo = PRESETS[cmd.preset].learner.algo
+        require(
+            cmd.preset == "default" or saved.learner.algo == algo,
+            f"--resume: the run in '{cmd.resume}' is --algo {saved.learner.algo} and --preset {cmd.preset} trains "
+            f"--algo {algo}; resume it without --preset",
+        )
         resume_conflicts(cmd.config, PRESETS[cmd.preset], saved)
         result = train(saved, out=cmd.resume, resume=True)
     last = [r for r in result.metrics if r["episodes"] == result.metrics[-1]["episodes"]]

@@ -26,7 +26,7 @@ from flax import serialization, struct
 from roverswarm.algos.learner import ON_POLICY, LearnerState, init_learner
 from roverswarm.algos.ppo import PPOState, init_ppo
 from roverswarm.buffers.base import BufferState
-from roverswarm.config import TrainConfig, validate
+from roverswarm.config import TrainConfig, config_from_json, fields_by_name, validate
 from roverswarm.env.mars import EnvParams, count_text, observation_size
 from roverswarm.errors import UserError, require
 from roverswarm.limits import check_memory, evaluation_parts, open_limited, read_config
@@ -178,7 +178,21 @@ def _restore(template, flat: dict[str, np.ndarray], prefix: str = ""):
     return serialization.from_state_dict(template, fill(serialization.to_state_dict(template), ""))
 
 
-def save_checkpoint(path: Path, runner, replay: bool = True) -> None:
+CHECKPOINT_CONFIG = "meta/config_json"
+"""The checkpoint's copy of the run's config.json, so that resume notices an edited config.json."""
+
+
+def checkpoint_changes(path: Path, config: TrainConfig) -> list[str]:
+    """The fields in which ``config`` differs from the config checkpoint ``path`` was trained
+    with (none for a checkpoint written before it kept its config)."""
+    kept = read_arrays(path, CHECKPOINT_CONFIG).get(CHECKPOINT_CONFIG)
+    if kept is None:
+        return []
+    trained = fields_by_name(config_from_json(kept.tobytes().decode()))
+    return [name for name, value in fields_by_name(config).items() if trained.get(name) != value]
+
+
+def save_checkpoint(path: Path, runner, replay: bool = True, config_json: str | None = None) -> None:
     """Write ``runner`` (the trainer's state: ``learner``, ``buffer`` and counters) to ``path``
     atomically (temp file, then rename); plain arrays, no pickle.
 
@@ -193,6 +207,8 @@ def save_checkpoint(path: Path, runner, replay: bool = True) -> None:
             buffer=runner.buffer.replace(data=jax.tree.map(lambda x: x[:, :filled], runner.buffer.data))
         )
     arrays = _flatten(serialization.to_state_dict(runner))
+    if config_json is not None:
+        arrays[CHECKPOINT_CONFIG] = np.frombuffer(config_json.encode(), np.uint8)
     if not replay:
         arrays = {k: v for k, v in arrays.items() if not k.startswith("buffer/")}
     atomic_write(path, lambda f: np.savez(f, **arrays), binary=True)
@@ -205,6 +221,7 @@ def atomic_write(path: Path, write: Callable[[IO], None], binary: bool = False) 
     was, and :class:`UserError` says so."""
     tmp = path.with_name(path.name + ".tmp")
     try:
+        tmp.unlink(missing_ok=True)  # a link left there is removed, not written through
         with open(tmp, "wb" if binary else "w", newline=None if binary else "") as f:
             write(f)
             f.flush()
@@ -347,7 +364,7 @@ def plot_learning_curve(rows: list[dict[str, float]], path: Path, title: str) ->
     ax.set_title(title)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path)
+    atomic_write(path, lambda f: fig.savefig(f, format="png"), binary=True)  # never through a symlink at path
 
 
 SubPolicies = Literal["random", "each"]

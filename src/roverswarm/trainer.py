@@ -51,6 +51,7 @@ from roverswarm.runs import (
     METRICS,
     Runner,
     atomic_write,
+    checkpoint_changes,
     folder_lock,
     load_checkpoint,
     metric_rows,
@@ -390,6 +391,12 @@ def _train(
                 not differ,
                 f"--resume: the run in '{out}' has other settings ({', '.join(differ)}); resume it with its own config",
             )
+            edited = checkpoint_changes(checkpoint, config)
+            require(
+                not edited,
+                f"--resume: '{out / CONFIG}' was edited since its checkpoint was written ({', '.join(edited)}); "
+                "restore the values the run was trained with, or start a new run",
+            )
             runner = load_checkpoint(checkpoint, runner)
             done = int(runner.episodes)
             rows = [r for r in read_metrics(out / METRICS) if r["episodes"] <= done] if (out / METRICS).exists() else []
@@ -464,7 +471,7 @@ def _train(
                 if out is not None:  # every chunk's rows at once; rows past the checkpoint are trimmed on resume
                     write_csv(out / METRICS, rows)
                 if out is not None and (last or stop.raised or checkpoint_due(config, chunk + 1 - first, saved_at)):
-                    save_checkpoint(out / CHECKPOINT, runner, replay=not last)
+                    save_checkpoint(out / CHECKPOINT, runner, replay=not last, config_json=config_to_json(config))
                     saved_at = time.monotonic()
                 if stop.raised and not last:
                     if out is not None:
