@@ -190,3 +190,8 @@ def test_a_file_that_grows_while_it_is_read_is_cut_at_the_limit(tmp_path, monkey
     with pytest.raises(UserError, match="has more than 1000 bytes"):
         with limits.open_limited(path, "metrics.csv") as f:
             f.read()
+
+
+def test_a_grid_checks_every_runs_memory_before_the_first_trains(tmp_path, capsys):
+    refused(["reproduce", "--quick", "--ensemble", "100000", "--out", str(tmp_path / "grid")], "--ensemble 100000", capsys)
+    assert not (tmp_path / "grid" / "runs").exists()

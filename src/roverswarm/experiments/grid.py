@@ -27,7 +27,7 @@ from rich.table import Table
 from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import RunStopped, UserError, require
 from roverswarm.experiments.stopping import JobsStop, start_job
-from roverswarm.limits import read_config
+from roverswarm.limits import check_training_memory, read_config
 from roverswarm.jaxcache import release_compiled_programs
 from roverswarm.config import PRESETS, TrainConfig, config_from_json, config_to_json, with_options, validate
 from roverswarm.runs import CHECKPOINT, CONFIG, METRICS, read_metrics
@@ -510,8 +510,8 @@ def run_ray(runs: list[GridRun], summary: Summary, address: str | None, retries:
 def run_grid(config: ReproduceConfig, base: TrainConfig | None = None, live: bool = True) -> list[GridRun]:
     """Train every run of the grid that is not finished yet; returns all runs of the grid."""
     runs = plan(config, base)
-    for run in runs:
-        validate(run.config)
+    for run in runs:  # every run checked, its memory too, before the first trains
+        check_training_memory(run.config, validate(run.config))
     if config.force:
         for run in runs:
             if run.folder.exists():
