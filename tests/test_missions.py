@@ -124,6 +124,27 @@ def test_small_files_cannot_exhaust_memory_or_time(tmp_path):
         parse_mission(names)
 
 
+def test_rover_start_lists_are_capped_and_checked_without_comparing_every_pair(tmp_path, monkeypatch):
+    import roverswarm.env.missions as missions
+
+    too_many = with_change(lambda d: d["rovers"].update(start=[[0.0, 0.0]] * (MAX_ENTRIES + 1)))
+    with pytest.raises(UserError, match=f"rovers.start: at most {MAX_ENTRIES} positions, got {MAX_ENTRIES + 1}"):
+        parse_mission(too_many)
+    # the largest list allowed, far apart on a wide map: every start is compared with the few
+    # starts near it, not with all the earlier ones (counted through the distance function)
+    starts = [[-9.5 + 0.6 * (i % 32), -9.5 + 0.6 * (i // 32)] for i in range(MAX_ENTRIES)]
+    data = {"map_size": 10.0, "rovers": {"start": starts}, "pois": [{"position": [9.9, 9.9]}]}
+    calls = []
+    real = np.linalg.norm
+    monkeypatch.setattr(missions.np.linalg, "norm", lambda *a, **k: calls.append(1) or real(*a, **k))
+    assert parse_mission(data).params.num_rovers == MAX_ENTRIES
+    assert len(calls) < 10 * MAX_ENTRIES  # all pairs: ~500,000
+    # an overlap is still found and named, with the earlier start
+    data["rovers"]["start"][700] = [starts[3][0] + 0.1, starts[3][1]]
+    with pytest.raises(UserError, match=r"rovers.start\[700\] overlaps rovers.start\[3\]"):
+        parse_mission(data)
+
+
 def test_a_mission_file_that_is_not_a_mapping_is_refused():
     with pytest.raises(UserError, match="mission file: expected a mapping"):
         parse_mission([1, 2])

@@ -513,11 +513,52 @@ def test_a_failed_job_is_reported_with_its_own_error(base, tmp_path):
     for run in runs:
         run.folder.mkdir(parents=True)
         (run.folder / ".lock").write_text(f"{os.getpid()} {socket.gethostname()}")  # this test: alive
-    with pytest.raises(RunStopped) as stopped:
+    with pytest.raises(UserError) as stopped:  # a user's mistake (a folder in use): exit 2, not a crash
         pool_module.run_jobs(runs, pool_module.Summary(runs, set()), jobs=2)
     name = str(stopped.value).split("'")[1]
     folder = next(run.folder for run in runs if run.name == name)
     assert f"'{folder}' is being written by process {os.getpid()}" in str(stopped.value)
+
+
+@pytest.mark.skipif(len(pool_module.usable_cpus()) < 2, reason="needs 2 CPUs")
+def test_a_locked_job_stops_the_others_without_a_traceback(base, tmp_path, capfd):
+    """One folder held by a live writer: its job fails at once, the other job (still starting)
+    is asked to stop; the command ends in one line, exit 2, and no job prints a traceback."""
+    grid = tiny_grid(tmp_path, scenarios=("paper-2",), algorithms=("ddpg", "maddpg"), jobs=2)
+    locked = plan(grid, base)[0].folder
+    locked.mkdir(parents=True)
+    (locked / ".lock").write_text(f"{os.getpid()} {socket.gethostname()}")  # this test: alive
+    with pytest.raises(UserError, match="is being written by process"):
+        reproduce(grid, base, live=False)
+    assert "Traceback" not in capfd.readouterr().err
+    assert not (tmp_path / ".lock").exists()
+
+
+@pytest.mark.skipif(len(pool_module.usable_cpus()) < 2, reason="needs 2 CPUs")
+def test_repeated_signals_during_jobs_stop_them_once_with_a_message(tmp_path):
+    """SIGTERM, then SIGINT and SIGTERM again while the jobs save: the first asks every job to
+    stop at its next chunk, the others are ignored; the command ends with its message (exit 1),
+    no traceback, every run keeps a checkpoint and the folder's lock is gone."""
+    import subprocess
+    import sys
+
+    argv = ["reproduce", "--quick", "--scenarios", "paper-2", "--algorithms", "ddpg", "maddpg", "--seeds", "1"]
+    argv += ["--episodes", "2000", "--jobs", "2", "--time-chunks", "0", "--out", str(tmp_path)]
+    driver = subprocess.Popen(
+        [sys.executable, "-m", "roverswarm.cli", *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    metrics = [tmp_path / "runs" / "paper-2" / a / "metrics.csv" for a in ("ddpg", "maddpg")]
+    while not all(m.exists() for m in metrics) and driver.poll() is None:
+        time.sleep(0.2)
+    for signum in (signal.SIGTERM, signal.SIGINT, signal.SIGTERM):
+        driver.send_signal(signum)
+        time.sleep(0.3)
+    out, err = driver.communicate(timeout=600)
+    assert driver.returncode == 1, err
+    assert "Traceback" not in err and "interrupted; every running run saved a checkpoint" in err, err
+    assert "stops at its next chunk" in out
+    assert all((m.parent / "checkpoint.npz").exists() for m in metrics)
+    assert not list(tmp_path.rglob(".lock"))
 
 
 def test_default_jobs_follow_run_length_cpus_and_memory(base, tmp_path, monkeypatch):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import re
 
 import imageio.v3 as iio
 import jax
@@ -134,16 +135,51 @@ def test_jobs_train_a_sweep_side_by_side_to_the_numbers_of_one_process(finished,
         ({"settings": {}}, "settings must map names to options"),
         ({"settings": {"a": {"preset": "fast"}}}, "setting 'a': preset must be one of"),
         ({"runs": 3, "settings": {"a": {}}}, "unknown keys ['runs']"),
+        # a setting's name becomes a folder: one safe path component only
+        ({"settings": {"/srv/victim": {}}}, "setting name: '/srv/victim' cannot name a folder"),
+        ({"settings": {"../../escape": {}}}, "setting name: '../../escape' cannot name a folder"),
+        ({"settings": {"a..b": {}}}, "setting name: 'a..b' cannot name a folder"),
+        ({"settings": {"..": {}}}, "setting name: '..' cannot name a folder"),
+        ({"settings": {"a b": {}}}, "setting name: 'a b' cannot name a folder"),
+        ({"settings": {3: {}}}, "setting name: 3 cannot name a folder"),
+        ({"settings": {"Plain": {}, "plain": {}}}, "setting names 'Plain' and 'plain' differ only in case"),
+        # what names a row cannot be changed by a setting
+        ({"settings": {"a": {"scenario": "paper-4"}}}, "setting 'a' may not set 'scenario' (it names the row)"),
+        ({"settings": {"a": {"mission": "m.yaml"}}}, "setting 'a' may not set 'mission' (it names the row)"),
+        ({"settings": {"a": {"seeds": 3}}}, "setting 'a' may not set 'seeds' (it names the row)"),
+        ({"scenarios": ["paper-2", "paper-2"], "settings": {"a": {}}}, "scenarios must each be given once"),
     ],
 )
 def test_bad_sweep_files_are_one_line_and_exit_2(spec, message, tmp_path, capsys):
     path = tmp_path / "bad.yaml"
     path.write_text(yaml.safe_dump(spec))
-    with pytest.raises(UserError, match=message.replace("[", r"\[").replace("]", r"\]")):
+    with pytest.raises(UserError, match=re.escape(message)):
         load_sweep(path, tmp_path / "out")
     assert main(["sweep", str(path), "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
+
+
+def test_a_name_given_twice_is_refused_before_anything_trains(tmp_path, capsys):
+    """YAML keeps the last of two equal keys; a sweep file refuses them, naming the line."""
+    path = tmp_path / "twice.yaml"
+    path.write_text("scenarios: [paper-2]\nsettings:\n  a: {}\n  a: {buffer_size: 50000}\n")
+    assert main(["sweep", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "line 4: 'a' is given twice" in err and err.count("\n") == 1
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_setting_name_cannot_write_outside_out(tmp_path, capsys):
+    """The issue's case: an absolute name (and a relative escape) trains nothing and writes nothing."""
+    victim = tmp_path / "victim"
+    victim.mkdir()
+    for name in (str(victim), "../../victim"):
+        path = tmp_path / "s.yaml"
+        path.write_text(f"scenarios: [paper-2]\nepisodes: 1000\nsettings:\n  {name}: {{buffer_size: 50000}}\n")
+        assert main(["sweep", str(path), "--out", str(tmp_path / "sw" / "x")]) == 2
+        assert "cannot name a folder" in capsys.readouterr().err
+    assert list(victim.iterdir()) == [] and not (tmp_path / "sw").exists()
 
 
 def test_the_score_against_n_script_joins_tables_by_rover_count(finished, tmp_path, monkeypatch, capsys):

@@ -178,9 +178,9 @@ def test_checkpoint_minutes_save_mid_run_without_changing_the_numbers(unbroken, 
     checkpoint (with the replay) after every chunk, and 0 only the final one (without it)."""
     original, saves = trainer_module.save_checkpoint, []
 
-    def recorded(path, runner, replay):
+    def recorded(path, runner, replay, **kept):
         saves.append(replay)
-        original(path, runner, replay=replay)
+        original(path, runner, replay=replay, **kept)
 
     monkeypatch.setattr(trainer_module, "save_checkpoint", recorded)
     chunks = tiny_config.episodes // tiny_config.log_every

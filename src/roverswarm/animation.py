@@ -14,6 +14,7 @@ import numpy as np
 
 from roverswarm.env.mars import EnvParams
 from roverswarm.env.render import FrameRenderer, check_animation_path, save_animation
+from roverswarm.limits import check_seed
 from roverswarm.policies import Policy
 from roverswarm.rollout import Rollout, rollout
 
@@ -68,5 +69,6 @@ def render_episode(params: EnvParams, policy: Policy, out: Path, seed: int = 0, 
     """Run one episode of ``policy`` and write it to ``out`` (GIF/MP4) plus a PNG of the last
     frame. Returns the PNG path."""
     check_animation_path(Path(out))
+    check_seed(seed)
     episode = rollout(policy, jax.random.PRNGKey(seed), params, num_episodes=1)
     return save_animation(episode_frames(episode, params, 0, label).frames, Path(out))

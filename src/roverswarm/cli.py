@@ -17,11 +17,12 @@ from rich.console import Console
 from rich.table import Table
 
 from roverswarm.animation import RenderConfig
-from roverswarm.config import PRESETS, TrainConfig, config_from_json, resume_conflicts
+from roverswarm.config import PRESETS, TrainConfig, resume_conflicts
 from roverswarm.errors import RunStopped, UserError, require
 from roverswarm.evaluate import EvaluateConfig
 from roverswarm.experiments import ReproduceConfig, reproduce
 from roverswarm.experiments.sweep import SweepConfig
+from roverswarm.limits import read_config
 from roverswarm.mission import MissionConfig, MissionRunConfig
 from roverswarm.runs import CONFIG
 from roverswarm.trainer import train
@@ -62,7 +63,13 @@ def run_train(cmd: TrainCommand) -> None:
     else:
         require((cmd.resume / CONFIG).exists(), f"--resume: '{cmd.resume}' holds no config.json")
         require(cmd.out in (None, cmd.resume), "--out and --resume name different folders")
-        saved = config_from_json((cmd.resume / CONFIG).read_text())
+        saved = read_config(cmd.resume / CONFIG)
+        algo = PRESETS[cmd.preset].learner.algo
+        require(
+            cmd.preset == "default" or saved.learner.algo == algo,
+            f"--resume: the run in '{cmd.resume}' is --algo {saved.learner.algo} and --preset {cmd.preset} trains "
+            f"--algo {algo}; resume it without --preset",
+        )
         resume_conflicts(cmd.config, PRESETS[cmd.preset], saved)
         result = train(saved, out=cmd.resume, resume=True)
     last = [r for r in result.metrics if r["episodes"] == result.metrics[-1]["episodes"]]

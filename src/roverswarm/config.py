@@ -25,6 +25,7 @@ from roverswarm.errors import UserError, require
 from roverswarm.errors import require_finite as _finite
 from roverswarm.errors import require_positive as _positive
 from roverswarm.learners import ALGOS, FAMILY_OPTIONS, learner_family
+from roverswarm.typed import check_types
 
 DEFAULT_SCENARIO = "paper-3"
 
@@ -187,6 +188,7 @@ def _representable(config: TrainConfig) -> None:
 
 def validate(config: TrainConfig) -> EnvParams:
     """Check ``config``; raise :class:`UserError` naming the bad field. Returns the env params."""
+    check_types(config, "config")
     _representable(config)
     require(
         config.mission is None or config.scenario == DEFAULT_SCENARIO,
@@ -284,12 +286,14 @@ def with_options(base: TrainConfig, options: dict[str, object], where: str = "op
     changes: dict[str, dict[str, object]] = {"": {}, **{part: {} for part in _NESTED}}
     for name, value in options.items():
         require(name in known, f"{where}: unknown option '{name}'; known: {', '.join(sorted(known))}")
-        changes[owner.get(name, "")][name] = tuple(value) if name == "hidden" else value  # type: ignore[arg-type]
+        changes[owner.get(name, "")][name] = tuple(value) if isinstance(value, list) else value  # type: ignore[arg-type]
     try:
         nested = {part: dataclasses.replace(getattr(base, part), **changes[part]) for part in _NESTED}
-        return dataclasses.replace(base, **changes[""], **nested)
+        config = dataclasses.replace(base, **changes[""], **nested)
     except TypeError as error:
         raise UserError(f"{where}: {error}") from error
+    check_types(config, where)
+    return config
 
 
 def resume_conflicts(given: TrainConfig, defaults: TrainConfig, saved: TrainConfig) -> None:
@@ -311,12 +315,14 @@ def config_from_json(text: str) -> TrainConfig:
     try:
         raw = json.loads(text)
         learner = raw.pop("learner")
-        learner["hidden"] = tuple(learner["hidden"])
+        learner["hidden"] = tuple(learner["hidden"]) if isinstance(learner["hidden"], list) else learner["hidden"]
         replay = raw.pop("buffer", {})
         for f in dataclasses.fields(ReplayConfig):
             if f.name in raw:
                 replay[f.name] = raw.pop(f.name)
         ppo = PPOConfig(**raw.pop("ppo", {}))
-        return TrainConfig(**raw, learner=AlgoConfig(**learner), buffer=ReplayConfig(**replay), ppo=ppo)
+        config = TrainConfig(**raw, learner=AlgoConfig(**learner), buffer=ReplayConfig(**replay), ppo=ppo)
     except (ValueError, KeyError, TypeError, AttributeError) as error:
         raise UserError(f"config.json is not a roverswarm training config ({type(error).__name__}: {error})") from error
+    check_types(config, "config.json")
+    return config

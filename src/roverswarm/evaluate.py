@@ -16,6 +16,7 @@ import tyro
 from roverswarm.env.mars import EnvParams
 from roverswarm.env.scenarios import get_scenario, range_sizes, scenario_sizes
 from roverswarm.errors import require
+from roverswarm.limits import check_memory, check_seed, evaluation_parts
 from roverswarm.policies import ORACLE, RANDOM
 from roverswarm.rollout import normalized_score, rollout
 from roverswarm.runs import Partners, Run, SubPolicies, load_policy
@@ -62,7 +63,9 @@ def evaluate_run(
     metrics and ``normalized_score``; with several sizes, or a ``scenario``, also ``scenario``.
     """
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
+    check_seed(seed)
     run = Run(out)
+    check_memory(evaluation_parts(run.config, run.params, episodes), "this evaluation")
     key = jax.random.PRNGKey(seed)
     policies = run.policies(sub_policies, seed, partners)
     named = scenario is not None or (run.config.mission is None and range_sizes(run.config.scenario) is not None)

@@ -27,6 +27,7 @@ from roverswarm.errors import require
 from roverswarm.policies import ORACLE, Policy
 from roverswarm.rollout import MissionStats, Rollout, rollout
 from roverswarm import runs
+from roverswarm.limits import check_seed
 from roverswarm.runs import folder_lock, write_csv
 
 
@@ -254,6 +255,7 @@ def run_mission(
     mission.png) of episode 0 into ``out``."""
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
     require(animation in ("gif", "mp4"), f"--animation must be gif or mp4, got '{animation}'")
+    check_seed(seed)
     mission = load_mission(mission_path)
     policy = load_policy(policy_spec, mission, policy_seed)
     fail_step = parse_failures(list(failures), mission.params)
@@ -364,6 +366,7 @@ def stress_mission(
     """``mission stress``: the policy beside the oracle, without and with a random rover
     failure; writes stress.csv, stress.md and stress.png into ``out``. Returns the rows."""
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
+    check_seed(seed)
     mission = load_mission(mission_path)
     policy = load_policy(policy_spec, mission, policy_seed)
     policies = [policy] if policy.name == ORACLE.name else [policy, ORACLE]

@@ -23,10 +23,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from roverswarm.config import TrainConfig, config_from_json, validate
+from roverswarm.config import TrainConfig, config_from_json, fields_by_name, validate
 from roverswarm.env.mars import EnvParams, count_text
 from roverswarm.errors import UserError, require
 from roverswarm.learners import learner_family
+from roverswarm.limits import check_memory, evaluation_parts, open_limited, read_config
 from roverswarm.metrics import EPISODE_METRICS, reduce_metric
 from roverswarm.policies import REFERENCE_POLICIES, Policy, mixed_policy, trained_policy
 
@@ -39,37 +40,67 @@ LOCK = ".lock"
 
 @contextlib.contextmanager
 def folder_lock(folder: Path) -> Iterator[None]:
-    """Create ``folder`` if needed and hold ``folder/.lock`` (the writer's process id and host)
-    while writing it: a second writer gets :class:`UserError` instead of mixing its files
-    with the first's. A lock whose process is gone (a killed run, on this host) is taken over.
-    A folder created here and left empty is removed again."""
+    """Create ``folder`` if needed and hold ``folder/.lock`` while writing it: a second writer
+    gets :class:`UserError` instead of mixing its files with the first's.
+
+    The lock is ``fcntl.flock`` on the open file, held for the writer's life: taking it is
+    atomic, and the kernel releases it when the process ends however it ends, so a stale
+    ``.lock`` (a killed run) is simply taken over, by exactly one of several writers started
+    together. The file holds the writer's process id and host, for the message; a ``.lock``
+    naming a live process on this host that does not hold the flock (an older roverswarm)
+    is respected too. A folder created here and left empty is removed again."""
+    import fcntl
+
     created = not folder.exists()
     path, me = folder / LOCK, f"{os.getpid()} {socket.gethostname()}"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise UserError(f"output folder '{folder}' is a file (or lies inside one), not a folder") from None
+    except OSError as error:  # read-only file system, no permission, ...
+        raise UserError(f"output folder '{folder}' cannot be written ({error.strerror or error})") from error
+    if not folder.is_dir():
+        raise UserError(f"output folder '{folder}' is a file (or lies inside one), not a folder")
     while True:
         try:
-            folder.mkdir(parents=True, exist_ok=True)
-            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-            break
-        except FileExistsError:
-            if not folder.is_dir():
-                raise UserError(f"output folder '{folder}' is a file (or lies inside one), not a folder") from None
-            owner = _lock_owner(path)
-            if owner is not None:
-                raise UserError(
-                    f"'{folder}' is being written by process {owner} (its {LOCK}); wait for it to finish, choose "
-                    f"another --out, or delete '{path}' if that process is gone"
-                ) from None
-            path.unlink(missing_ok=True)  # stale: its writer is gone
-        except OSError as error:  # read-only file system, no permission, ...
+            fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
+        except OSError as error:
             raise UserError(f"output folder '{folder}' cannot be written ({error.strerror or error})") from error
-    with os.fdopen(fd, "w") as f:
-        f.write(me)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            raise UserError(_held(folder, path, _lock_owner(path) or "(unknown)")) from None
+        try:  # the file may have been removed and made anew by a writer that just finished: lock that one
+            same = os.fstat(fd).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        owner = _lock_owner(path)
+        if owner is not None and owner.split()[0] != str(os.getpid()):
+            raise UserError(_held(folder, path, owner))
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, me.encode(), 0)
+    except BaseException:
+        os.close(fd)
+        raise
     try:
         yield
     finally:
-        path.unlink(missing_ok=True)
-        if created and not any(folder.iterdir()):
+        path.unlink(missing_ok=True)  # while still holding the flock: a waiting writer then makes a new file
+        os.close(fd)
+        if created and folder.exists() and not any(folder.iterdir()):
             folder.rmdir()
+
+
+def _held(folder: Path, path: Path, owner: str) -> str:
+    return (
+        f"'{folder}' is being written by process {owner} (its {LOCK}); wait for it to finish, choose "
+        f"another --out, or delete '{path}' if that process is gone"
+    )
 
 
 def _lock_owner(path: Path) -> str | None:
@@ -79,8 +110,8 @@ def _lock_owner(path: Path) -> str | None:
         pid, host = path.read_text().split()
     except FileNotFoundError:
         return None
-    except ValueError:  # being written this instant, or garbage: treat as held
-        return "(unknown)"
+    except ValueError:  # empty or garbage: nobody named (the flock says whether it is held)
+        return None
     if host == socket.gethostname():
         try:
             os.kill(int(pid), 0)
@@ -123,7 +154,21 @@ def _restore(template, flat: dict[str, np.ndarray], prefix: str = ""):
     return serialization.from_state_dict(template, fill(serialization.to_state_dict(template), ""))
 
 
-def save_checkpoint(path: Path, runner, replay: bool = True) -> None:
+CHECKPOINT_CONFIG = "meta/config_json"
+"""The checkpoint's copy of the run's config.json, so that resume notices an edited config.json."""
+
+
+def checkpoint_changes(path: Path, config: TrainConfig) -> list[str]:
+    """The fields in which ``config`` differs from the config checkpoint ``path`` was trained
+    with (none for a checkpoint written before it kept its config)."""
+    kept = read_arrays(path, CHECKPOINT_CONFIG).get(CHECKPOINT_CONFIG)
+    if kept is None:
+        return []
+    trained = fields_by_name(config_from_json(kept.tobytes().decode()))
+    return [name for name, value in fields_by_name(config).items() if trained.get(name) != value]
+
+
+def save_checkpoint(path: Path, runner, replay: bool = True, config_json: str | None = None) -> None:
     """Write ``runner`` (the trainer's state: ``learner``, ``buffer`` and counters) to ``path``
     atomically (temp file, then rename); plain arrays, no pickle.
 
@@ -138,6 +183,8 @@ def save_checkpoint(path: Path, runner, replay: bool = True) -> None:
             buffer=runner.buffer.replace(data=jax.tree.map(lambda x: x[:, :filled], runner.buffer.data))
         )
     arrays = _flatten(serialization.to_state_dict(runner))
+    if config_json is not None:
+        arrays[CHECKPOINT_CONFIG] = np.frombuffer(config_json.encode(), np.uint8)
     if not replay:
         arrays = {k: v for k, v in arrays.items() if not k.startswith("buffer/")}
     atomic_write(path, lambda f: np.savez(f, **arrays), binary=True)
@@ -150,6 +197,7 @@ def atomic_write(path: Path, write: Callable[[IO], None], binary: bool = False) 
     was, and :class:`UserError` says so."""
     tmp = path.with_name(path.name + ".tmp")
     try:
+        tmp.unlink(missing_ok=True)  # a link left there is removed, not written through
         with open(tmp, "wb" if binary else "w", newline=None if binary else "") as f:
             write(f)
             f.flush()
@@ -181,6 +229,11 @@ def load_checkpoint(path: Path, template):
         flat.update(_flatten(serialization.to_state_dict(template.buffer), "buffer/"))
     for key, x in flat.items():
         if key.startswith("buffer/data/"):
+            require(
+                x.shape[1] <= capacity,
+                f"--buffer-size: this run's replay already holds {x.shape[1]} transitions per seed and the "
+                f"config gives room for {capacity}; resume with --buffer-size >= {x.shape[1]}",
+            )
             flat[key] = np.concatenate(
                 [x, np.zeros((x.shape[0], capacity - x.shape[1], *x.shape[2:]), x.dtype)], axis=1
             )
@@ -233,11 +286,13 @@ def read_metrics(path: Path) -> list[dict[str, float]]:
     """The rows of a ``metrics.csv``: ``seed`` and ``episodes`` as ints, the rest as floats;
     :class:`UserError` if the file is damaged."""
     try:
-        with open(path, newline="") as f:
+        with open_limited(path, "metrics.csv") as f:
             return [
                 {k: int(float(v)) if k in COUNT_COLUMNS else float(v) for k, v in row.items()}
                 for row in csv.DictReader(f)
             ]
+    except UserError:  # past its size limit
+        raise
     except (ValueError, TypeError, UnicodeDecodeError, csv.Error) as error:
         raise UserError(f"'{path}' is damaged ({error}); it is not a roverswarm metrics file") from error
 
@@ -264,7 +319,7 @@ def plot_learning_curve(rows: list[dict[str, float]], path: Path, title: str) ->
     ax.set_title(title)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path)
+    atomic_write(path, lambda f: fig.savefig(f, format="png"), binary=True)  # never through a symlink at path
 
 
 SubPolicies = Literal["random", "each"]
@@ -287,8 +342,9 @@ class Run:
             (self.folder / CONFIG).exists() and (self.folder / CHECKPOINT).exists(),
             f"'{self.folder}' holds no trained run (config.json and checkpoint.npz)",
         )
-        self.config: TrainConfig = config_from_json((self.folder / CONFIG).read_text())
+        self.config: TrainConfig = read_config(self.folder / CONFIG)
         self.params: EnvParams = validate(self.config)
+        check_memory(evaluation_parts(self.config, self.params, 0), f"the run in '{self.folder}'")
 
     @classmethod
     def of(cls, config: TrainConfig, learner: Any, folder: str | os.PathLike = "(in memory)") -> Run:

@@ -24,15 +24,17 @@ import numpy as np
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from tensorboardX import SummaryWriter
 
-from roverswarm.config import TrainConfig, config_from_json, config_to_json, fields_by_name, validate, with_mission_text
+from roverswarm.config import TrainConfig, config_to_json, fields_by_name, validate, with_mission_text
 from roverswarm.env.mars import EnvParams
 from roverswarm.errors import RunStopped, require
 from roverswarm.learners import learner_family
+from roverswarm.limits import check_training_memory, read_config
 from roverswarm.runs import (
     CHECKPOINT,
     CONFIG,
     METRICS,
     atomic_write,
+    checkpoint_changes,
     folder_lock,
     load_checkpoint,
     metric_rows,
@@ -99,6 +101,7 @@ def train(
     if config.mission is not None:  # kept absolute and with its content: resume and evaluate need not find the file
         config = with_mission_text(config)
     params = validate(config)
+    check_training_memory(config, params)  # networks, replay, rollouts and minibatches, before any is allocated
     require(out is not None or not resume, "resume=True needs the run folder (--out) to resume")
     require(
         out is not None or config.episodes <= 10_000,
@@ -171,11 +174,17 @@ def _train(
                 checkpoint.exists() and (out / CONFIG).exists(),
                 f"--resume: no run to continue in '{out}' (config.json and checkpoint.npz)",
             )
-            saved = fields_by_name(config_from_json((out / CONFIG).read_text()))
+            saved = fields_by_name(read_config(out / CONFIG))
             differ = [name for name, value in fields_by_name(config).items() if saved[name] != value]
             require(
                 not differ,
                 f"--resume: the run in '{out}' has other settings ({', '.join(differ)}); resume it with its own config",
+            )
+            edited = checkpoint_changes(checkpoint, config)
+            require(
+                not edited,
+                f"--resume: '{out / CONFIG}' was edited since its checkpoint was written ({', '.join(edited)}); "
+                "restore the values the run was trained with, or start a new run",
             )
             runner = load_checkpoint(checkpoint, runner)
             done = int(runner.episodes)
@@ -251,7 +260,7 @@ def _train(
                 if out is not None:  # every chunk's rows at once; rows past the checkpoint are trimmed on resume
                     write_csv(out / METRICS, rows)
                 if out is not None and (last or stop.raised or checkpoint_due(config, chunk + 1 - first, saved_at)):
-                    save_checkpoint(out / CHECKPOINT, runner, replay=not last)
+                    save_checkpoint(out / CHECKPOINT, runner, replay=not last, config_json=config_to_json(config))
                     saved_at = time.monotonic()
                 if stop.raised and not last:
                     if out is not None:

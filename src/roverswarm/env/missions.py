@@ -134,6 +134,7 @@ def _rovers(data: dict, size: float) -> tuple[int, np.ndarray | None, np.ndarray
             isinstance(starts, list) and len(starts) > 0,
             f"rovers.start: expected a non-empty list of positions, got {starts!r}",
         )
+        require(len(starts) <= MAX_ENTRIES, f"rovers.start: at most {MAX_ENTRIES} positions, got {len(starts)}")
         count = rovers.get("count", len(starts))
         require(
             type(count) is int and count == len(starts),
@@ -161,20 +162,26 @@ def _rovers(data: dict, size: float) -> tuple[int, np.ndarray | None, np.ndarray
 
 
 def _check_clear(starts: np.ndarray, traps: np.ndarray, trap_radii: np.ndarray, rover_radius: float) -> None:
+    """Refuse a start inside a trap or overlapping an earlier start. Linear in the starts: traps
+    are compared in one array operation per start, and starts only with the earlier ones in
+    their own and the neighbouring cells of a grid of cells as wide as a rover."""
+    side = 2 * rover_radius
+    cells: dict[tuple[int, int], list[int]] = {}
     for i, start in enumerate(starts):
-        for j, (trap, radius) in enumerate(zip(traps, trap_radii)):
-            gap = float(np.linalg.norm(start - trap)) - radius - rover_radius
+        if len(traps):
+            gaps = np.linalg.norm(traps - start, axis=1) - trap_radii.astype(np.float64) - rover_radius
+            j = int(np.argmax(gaps < 0))
             require(
-                gap >= 0,
+                gaps[j] >= 0,
                 f"rovers.start[{i}] overlaps traps[{j}]: a rover (radius {rover_radius:g}) there "
                 "would start in the crater",
             )
-        for k in range(i):
-            gap = float(np.linalg.norm(start - starts[k])) - 2 * rover_radius
-            require(
-                gap >= 0,
-                f"rovers.start[{i}] overlaps rovers.start[{k}]: starts must be at least {2 * rover_radius:g} apart",
-            )
+        cx, cy = int(np.floor(start[0] / side)), int(np.floor(start[1] / side))
+        near = [k for dx in (-1, 0, 1) for dy in (-1, 0, 1) for k in cells.get((cx + dx, cy + dy), ())]
+        for k in sorted(near):
+            gap = float(np.linalg.norm(start - starts[k])) - side
+            require(gap >= 0, f"rovers.start[{i}] overlaps rovers.start[{k}]: starts must be at least {side:g} apart")
+        cells.setdefault((cx, cy), []).append(i)
 
 
 def _check_observable(
@@ -187,11 +194,15 @@ def _check_observable(
 ) -> None:
     """Refuse a POI that no rover can observe without touching a trap: every point within its
     observation radius is closer to the trap's centre than trap radius + rover radius."""
-    for i, (poi, reach) in enumerate(zip(pois, observe)):
-        for j, (trap, radius) in enumerate(zip(traps, trap_radii)):
-            clear = float(radius) + rover_radius - float(reach)  # the POI must be farther than this from the trap
-            require(
-                float(np.linalg.norm(poi - trap)) > clear,
+    if not len(traps):
+        return
+    for i, (poi, reach) in enumerate(zip(pois, observe)):  # one array operation per POI over the traps
+        clears = trap_radii.astype(np.float64) + rover_radius - float(reach)  # the POI must be farther than this
+        blocked = np.linalg.norm(traps - poi, axis=1) <= clears
+        if blocked.any():
+            j = int(np.argmax(blocked))
+            clear = float(clears[j])
+            raise UserError(
                 f"pois[{i}] '{names[i]}' cannot be observed without touching traps[{j}]: a rover "
                 f"(radius {rover_radius:g}) "
                 f"within {float(reach):g} of it would be in the crater; move it more than {clear:g} "
@@ -244,8 +255,11 @@ def read_mission_text(path: str | Path) -> str:
     require(path.is_file(), f"mission file '{path}' is not a file")
     size = path.stat().st_size
     require(size <= MAX_BYTES, f"mission file '{path}' has {size} bytes; at most {MAX_BYTES} are read")
+    with open(path, "rb") as f:
+        data = f.read(MAX_BYTES + 1)  # never more, even if the file grew since
+    require(len(data) <= MAX_BYTES, f"mission file '{path}' has more than {MAX_BYTES} bytes; at most {MAX_BYTES} are read")
     try:
-        return path.read_text(encoding="utf-8")
+        return data.decode("utf-8").replace("\r\n", "\n").replace("\r", "\n")  # as read_text: universal newlines
     except UnicodeDecodeError as error:
         raise UserError(f"mission file '{path}' is not valid UTF-8: {error}") from None
 

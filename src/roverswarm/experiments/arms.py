@@ -13,9 +13,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Literal
 
-from roverswarm.config import PRESETS, TrainConfig, config_from_json, with_options
+from roverswarm.config import PRESETS, TrainConfig, with_options
 from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
+from roverswarm.limits import read_config
 from roverswarm.runs import CHECKPOINT, CONFIG, METRICS, read_metrics
 
 ALGORITHMS: dict[str, dict[str, str]] = {
@@ -270,7 +271,7 @@ def status(run: GridRun) -> Literal["done", "partial", "new"]:
     another --out), never silently overwritten."""
     if not (run.folder / CONFIG).exists():
         return "new"
-    saved = config_from_json((run.folder / CONFIG).read_text())
+    saved = read_config(run.folder / CONFIG)
     if saved != run.config:
         raise UserError(
             f"'{run.folder}' holds a run with other settings; rerun with --force to replace it, or choose another --out"

@@ -18,6 +18,7 @@ from rich.console import Console
 from rich.live import Live
 
 from roverswarm.config import TrainConfig, validate
+from roverswarm.limits import check_training_memory
 from roverswarm.experiments.arms import GridRun, ReproduceConfig, plan, status
 from roverswarm.experiments.live import Summary
 from roverswarm.experiments.pool import default_jobs, train_runs
@@ -27,8 +28,8 @@ from roverswarm.experiments.remote import run_ray
 def run_grid(config: ReproduceConfig, base: TrainConfig | None = None, live: bool = True) -> list[GridRun]:
     """Train every run of the grid that is not finished yet; returns all runs of the grid."""
     runs = plan(config, base)
-    for run in runs:
-        validate(run.config)
+    for run in runs:  # every run checked, its memory too, before the first trains
+        check_training_memory(run.config, validate(run.config))
     if config.force:
         for run in runs:
             if run.folder.exists():

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import multiprocessing
 import os
-import signal
 import sys
 import time
 from pathlib import Path
@@ -14,6 +13,7 @@ from roverswarm.config import config_from_json, config_to_json
 from roverswarm.errors import RunStopped, UserError
 from roverswarm.experiments.arms import SHORT_RUN, GridRun, episodes_done, status, usable_cpus
 from roverswarm.experiments.live import Summary
+from roverswarm.experiments.stopping import JobsStop, start_job
 from roverswarm.jaxcache import release_compiled_programs
 from roverswarm.trainer import physical_memory, run_memory, train
 
@@ -66,39 +66,35 @@ def run_jobs(runs: list[GridRun], summary: Summary, jobs: int) -> None:
     context = multiprocessing.get_context("spawn")  # a fresh JAX per process (fork would copy threads)
     failures = context.Queue()
     queue, running, reported = list(runs), {}, {}
-    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM as Ctrl-C
-    try:
-        while queue or running:
-            while queue and free:
-                run, share = queue.pop(0), free.pop()
-                args = (config_to_json(run.config), str(run.folder), status(run) == "partial", share, failures)
-                process = context.Process(target=_train_job, args=args, daemon=False)
-                process.start()
-                running[process] = (run, share)
-            time.sleep(0.5)
-            for process in [p for p in running if not p.is_alive()]:
-                run, share = running.pop(process)
-                free.append(share)
-                if process.exitcode != 0:
-                    while not failures.empty():  # every job's error so far, by its folder
-                        folder, text = failures.get()
-                        reported[folder] = text
-                    message = reported.get(str(run.folder), f"exit code {process.exitcode}")
-                    raise RunStopped(f"run '{run.name}' stopped: {message}")
-                summary.finish(run)
-            for run, _ in running.values():
-                summary.progress(run, episodes_done(run))
-    except KeyboardInterrupt:
-        raise RunStopped(
-            "interrupted; every running run saved a checkpoint: rerun the same command to resume"
-        ) from None
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-        for process in running:  # stop at the next chunk, with a checkpoint
-            if process.is_alive():
-                os.kill(process.pid, signal.SIGINT)
-        for process in running:
-            process.join()
+    with JobsStop() as stop:  # first Ctrl-C or SIGTERM: every job stops at its next chunk; later ones ignored
+        try:
+            while (queue and not stop.asked) or running:
+                while queue and free and not stop.asked:
+                    run, share = queue.pop(0), free.pop()
+                    args = (config_to_json(run.config), str(run.folder), status(run) == "partial", share, failures)
+                    process = context.Process(target=_train_job, args=args, daemon=False)
+                    start_job(process)
+                    running[process] = (run, share)
+                time.sleep(0.5)
+                if stop.asked:
+                    stop.tell(running)
+                for process in [p for p in running if not p.is_alive()]:
+                    run, share = running.pop(process)
+                    free.append(share)
+                    if process.exitcode != 0 and not stop.asked:
+                        while not failures.empty():  # every job's error so far, by its folder
+                            folder, kind, text = failures.get()
+                            reported[folder] = (kind, text)
+                        kind, message = reported.get(str(run.folder), ("stopped", f"exit code {process.exitcode}"))
+                        raise (UserError if kind == "user" else RunStopped)(f"run '{run.name}': {message}")
+                    if process.exitcode == 0:
+                        summary.finish(run)
+                for run, _ in running.values():
+                    summary.progress(run, episodes_done(run))
+        finally:  # stop the others at their next chunk, with a checkpoint
+            stop.wait(list(running))
+    if stop.asked:
+        raise RunStopped("interrupted; every running run saved a checkpoint: rerun the same command to resume")
 
 
 def _train_job(config_json: str, folder: str, resume: bool, cpus: list[int], failures) -> None:
@@ -112,5 +108,8 @@ def _train_job(config_json: str, folder: str, resume: bool, cpus: list[int], fai
     try:
         train(config_from_json(config_json), out=Path(folder), resume=resume, progress=False)
     except (UserError, RunStopped, OSError) as error:
-        failures.put((folder, str(error)))
+        failures.put((folder, "user" if isinstance(error, UserError) else "stopped", str(error)))
+        sys.exit(1)
+    except KeyboardInterrupt:  # stopped before training installed its handler: nothing to save yet
+        failures.put((folder, "stopped", "interrupted before its first chunk"))
         sys.exit(1)

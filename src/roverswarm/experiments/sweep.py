@@ -27,6 +27,7 @@ random and oracle rewards the score is measured against, and minutes of training
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 from dataclasses import dataclass
@@ -44,6 +45,7 @@ from roverswarm.experiments.arms import GridRun, check_jobs, status
 from roverswarm.experiments.live import Summary
 from roverswarm.experiments.pool import default_jobs, train_runs
 from roverswarm.config import PRESETS, validate, with_options
+from roverswarm.limits import check_memory, open_limited, read_limited, safe_name, training_parts
 from roverswarm.runs import METRICS, atomic_write, folder_lock, markdown_table, read_metrics, write_csv
 
 EVALUATION = "evaluation.csv"
@@ -66,29 +68,70 @@ class SweepConfig:
     and the runs left allow; 1 trains them one after another in this process."""
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader refusing a key given twice in one mapping (PyYAML keeps the last one)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen: set = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            with contextlib.suppress(TypeError):  # unhashable keys are left to the checks below
+                if key in seen:
+                    raise UserError(f"line {key_node.start_mark.line + 1}: '{key}' is given twice")
+                seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+ROW_OPTIONS = ("scenario", "mission", "mission_text", "seeds")
+"""Options a setting may not change: the sweep's rows and folders are named by them."""
+
+
 def load_sweep(path: Path, out: Path) -> list[GridRun]:
-    """The runs of sweep file ``path`` (checked: scenarios, options, presets), with folders under ``out``."""
+    """The runs of sweep file ``path`` (checked: scenarios, options, types, presets, names,
+    each run's memory), with folders under ``out``: ``out/runs/<scenario>/<setting>``, the
+    setting's name checked to be one path component (:func:`~roverswarm.limits.safe_name`)."""
     require(Path(path).is_file(), f"sweep file '{path}' does not exist")
     try:
-        spec = yaml.safe_load(Path(path).read_text())
+        spec = yaml.load(read_limited(path, "sweep file"), Loader=_UniqueKeyLoader)  # noqa: S506 (a safe loader)
     except yaml.YAMLError as error:
-        raise UserError(f"sweep file '{path}' is not valid YAML: {error}") from error
+        flat = " ".join(str(error).split())
+        raise UserError(f"sweep file '{path}' is not valid YAML: {flat}") from error
+    except UserError as error:
+        raise UserError(f"sweep file '{path}': {error}") from None
     require(
         isinstance(spec, dict),
         f"sweep file '{path}' must hold a mapping (preset, scenarios, seeds, episodes, settings)",
     )
     known = {"preset", "scenarios", "seeds", "episodes", "settings"}
-    require(
-        set(spec) <= known, f"sweep file '{path}': unknown keys {sorted(set(spec) - known)}; known: {sorted(known)}"
-    )
+    unknown = sorted(map(str, set(spec) - known))
+    require(not unknown, f"sweep file '{path}': unknown keys {unknown}; known: {sorted(known)}")
     preset = spec.get("preset", "default")
-    require(preset in PRESETS, f"sweep file '{path}': preset must be one of {', '.join(PRESETS)}, got '{preset}'")
+    require(
+        isinstance(preset, str) and preset in PRESETS,
+        f"sweep file '{path}': preset must be one of {', '.join(PRESETS)}, got {preset!r}",
+    )
     scenarios = spec.get("scenarios", ["paper-3"])
     require(isinstance(scenarios, list) and scenarios, f"sweep file '{path}': scenarios must be a non-empty list")
     for name in scenarios:
-        require(name in SCENARIOS, f"sweep file '{path}': unknown scenario '{name}'; known: {', '.join(SCENARIOS)}")
+        require(
+            isinstance(name, str) and name in SCENARIOS,
+            f"sweep file '{path}': unknown scenario {name!r}; known: {', '.join(SCENARIOS)}",
+        )
+    require(
+        len(set(scenarios)) == len(scenarios),
+        f"sweep file '{path}': scenarios must each be given once, got {', '.join(scenarios)}",
+    )
     settings = spec.get("settings")
     require(isinstance(settings, dict) and settings, f"sweep file '{path}': settings must map names to options")
+    folded: dict[str, str] = {}
+    for name in settings:
+        safe_name(name, f"sweep file '{path}': setting name")
+        require(
+            name.casefold() not in folded,
+            f"sweep file '{path}': setting names '{folded.get(name.casefold())}' and '{name}' differ only in case "
+            "(one folder on some file systems); rename one",
+        )
+        folded[name.casefold()] = name
     common = {k: spec[k] for k in ("seeds", "episodes") if k in spec}
     runs = []
     for scenario in scenarios:
@@ -98,12 +141,22 @@ def load_sweep(path: Path, out: Path) -> list[GridRun]:
                 f"sweep file '{path}': setting '{name}' must map option names to values",
             )
             options = dict(options or {})
+            for option in ROW_OPTIONS:
+                require(
+                    option not in options,
+                    f"sweep file '{path}': setting '{name}' may not set '{option}' (it names the row); "
+                    "give scenarios and seeds at the top of the file",
+                )
             start = options.pop("preset", preset)
-            require(start in PRESETS, f"setting '{name}': preset must be one of {', '.join(PRESETS)}, got '{start}'")
+            require(
+                isinstance(start, str) and start in PRESETS,
+                f"setting '{name}': preset must be one of {', '.join(PRESETS)}, got {start!r}",
+            )
             base = with_options(PRESETS[start], common, f"sweep file '{path}'")
             config = with_options(dataclasses.replace(base, scenario=scenario), options, f"setting '{name}'")
-            validate(config)
-            runs.append(GridRun(scenario, str(name), config, Path(out) / "runs" / scenario / str(name)))
+            params = validate(config)
+            check_memory(training_parts(config, params), f"setting '{name}' on {scenario}")
+            runs.append(GridRun(scenario, name, config, Path(out) / "runs" / scenario / name))
     return runs
 
 
@@ -205,7 +258,7 @@ def read_table(path: Path) -> list[dict[str, object]]:
                 pass
         return text
 
-    with open(path, newline="") as f:
+    with open_limited(path, "evaluation table") as f:
         return [{k: value(v) for k, v in row.items()} for row in csv.DictReader(f)]
 
 

@@ -1,0 +1,197 @@
+"""Limits on what the package reads and allocates: every refusal one line, exit 2, before work starts."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import signal
+from pathlib import Path
+
+import pytest
+import yaml
+
+from roverswarm.cli import main
+from roverswarm.config import config_to_json
+from roverswarm.errors import RunStopped, UserError
+from roverswarm.trainer import train
+
+MISSION = str(Path(__file__).parent.parent / "examples" / "mission.yaml")
+
+
+def refused(argv: list[str], message: str, capsys) -> None:
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1 and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["render", "--seed", str(2**70)],
+        ["evaluate", "some-run", "--seed", str(2**70)],
+        ["mission", "run", MISSION, "--seed", str(2**70)],
+        ["mission", "stress", MISSION, "--seed", str(2**70)],
+        ["render", "--seed", "-1"],
+    ],
+)
+def test_a_seed_a_prng_key_cannot_hold_is_one_line(argv, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    refused(argv, "--seed must be an integer in [0, 2^32)", capsys)
+
+
+@pytest.mark.parametrize(
+    "top, setting, message",
+    [
+        ({"seeds": 2.0}, {}, "seeds must be an integer, got 2.0"),
+        ({"episodes": "400"}, {}, "episodes must be an integer, got '400'"),
+        ({}, {"hidden": 64}, "setting 'a': hidden must be a list of integers, got 64"),
+        ({}, {"hidden": [64.5]}, "setting 'a': hidden must be a list of integers, got (64.5,)"),
+        ({}, {"twin_critics": "yes"}, "setting 'a': twin_critics must be true or false, got 'yes'"),
+        ({}, {"actor_lr": [1]}, "setting 'a': actor_lr must be a number, got (1,)"),
+    ],
+)
+def test_a_wrong_typed_sweep_value_is_refused_before_training(top, setting, message, tmp_path, capsys):
+    path = tmp_path / "s.yaml"
+    path.write_text(yaml.safe_dump({"scenarios": ["paper-2"], **top, "settings": {"a": setting}}))
+    refused(["sweep", str(path), "--out", str(tmp_path / "out")], message, capsys)
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_wrong_typed_config_json_is_refused_by_every_command(tiny_config, tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    raw = json.loads(config_to_json(tiny_config))
+    raw["seeds"] = 2.0
+    (run / "config.json").write_text(json.dumps(raw))
+    (run / "checkpoint.npz").write_bytes(b"")
+    for argv in (["train", "--resume", str(run)], ["evaluate", str(run)]):
+        refused(argv, "config.json: seeds must be an integer, got 2.0", capsys)
+
+
+@pytest.fixture(scope="module")
+def interrupted(tiny_config, tmp_path_factory):
+    """A tiny run stopped after 2 of 3 chunks (200 episodes: 5000 transitions seen, 4000 kept)."""
+    import os
+
+    import roverswarm.trainer as trainer
+
+    out = tmp_path_factory.mktemp("interrupted") / "run"
+    config = dataclasses.replace(tiny_config, episodes=300)
+    real, calls = trainer.run_chunk, []
+
+    def signalled(*args):
+        calls.append(1)
+        if len(calls) == 2:
+            os.kill(os.getpid(), signal.SIGINT)
+        return real(*args)
+
+    trainer.run_chunk = signalled
+    try:
+        with pytest.raises(RunStopped):
+            train(config, out=out, progress=False)
+    finally:
+        trainer.run_chunk = real
+    return config, out
+
+
+def test_a_replay_smaller_than_what_a_resumed_run_filled_is_one_line(interrupted):
+    from roverswarm.config import validate, with_options
+    from roverswarm.runs import load_checkpoint
+    from roverswarm.trainer import init_runner, run_buffer
+
+    config, out = interrupted
+    smaller = with_options(config, {"buffer_size": 1000})
+    params = validate(smaller)
+    template = init_runner(smaller, params, run_buffer(smaller, params))
+    with pytest.raises(UserError, match="already holds 4000 transitions per seed .* --buffer-size >= 4000"):
+        load_checkpoint(out / "checkpoint.npz", template)
+
+
+def test_an_edited_config_json_or_another_presets_learner_is_not_resumed(interrupted, tmp_path, capsys):
+    import shutil
+
+    _, run = interrupted
+    out = tmp_path / "run"
+    shutil.copytree(run, out)
+    refused(["train", "--resume", str(out), "--preset", "mappo"], "is --algo maddpg and --preset mappo trains", capsys)
+    raw = json.loads((out / "config.json").read_text())
+    raw["learner"]["actor_lr"] = 0.5
+    raw["buffer"]["buffer_size"] = 1000
+    (out / "config.json").write_text(json.dumps(raw))
+    refused(["train", "--resume", str(out)], "was edited since its checkpoint was written (actor_lr, buffer_size)", capsys)
+
+
+def test_the_learning_curve_is_not_written_through_a_symlink(tmp_path):
+    from roverswarm.runs import plot_learning_curve
+
+    victim = tmp_path / "victim.txt"
+    victim.write_text("mine")
+    (tmp_path / "learning_curve.png").symlink_to(victim)
+    plot_learning_curve([{"seed": 0, "episodes": 100, "episode_reward": 1.0}], tmp_path / "learning_curve.png", "t")
+    assert victim.read_text() == "mine" and not (tmp_path / "learning_curve.png").is_symlink()
+
+
+@pytest.mark.parametrize(
+    "argv, part",
+    [
+        (["train", "--hidden", "65536", "65536"], "for the networks (--hidden (65536, 65536), --ensemble 1, --seeds 1)"),
+        (["train", "--ensemble", "100000"], "--ensemble 100000, --seeds 1)"),
+        (["train", "--preset", "mappo", "--seeds", "1000000"], "--seeds 1000000)"),
+    ],
+)
+def test_memory_past_what_the_process_may_use_is_refused_before_it_is_allocated(argv, part, tmp_path, capsys):
+    """Estimated from shapes only: the test would not finish (or be killed) if any were allocated."""
+    refused([*argv, "--out", str(tmp_path / "run")], part, capsys)
+    assert not (tmp_path / "run").exists()
+
+
+def test_evaluate_refuses_a_run_or_a_batch_too_large_before_reading_its_checkpoint(tiny_config, tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "checkpoint.npz").write_bytes(b"")  # never read: the estimate comes first
+    huge = dataclasses.replace(tiny_config, learner=dataclasses.replace(tiny_config.learner, hidden=(65536, 65536)))
+    (run / "config.json").write_text(config_to_json(huge))
+    refused(["evaluate", str(run)], f"the run in '{run}' needs about", capsys)
+    (run / "config.json").write_text(config_to_json(tiny_config))
+    refused(["evaluate", str(run), "--episodes", str(2**30)], "for the evaluation batch (--episodes 1073741824)", capsys)
+
+
+def test_files_past_their_limit_are_refused_without_being_read(tiny_config, tmp_path, monkeypatch, capsys):
+    """A sparse file of a few GB costs nothing to make; reading it whole would (the issue: a 1 GB
+    config.json peaked at 2.4 GB). The limits: docs/limits.md."""
+    import roverswarm.limits as limits
+    from roverswarm.runs import read_metrics, write_csv
+
+    run = tmp_path / "run"
+    run.mkdir()
+    with open(run / "config.json", "wb") as f:
+        f.truncate(3 * 2**30)
+    (run / "checkpoint.npz").write_bytes(b"")
+    for argv in (["train", "--resume", str(run)], ["evaluate", str(run)]):
+        refused(argv, f"config.json '{run / 'config.json'}' has {3 * 2**30} bytes; at most 1048576 (1 MiB)", capsys)
+    sweep = tmp_path / "s.yaml"
+    with open(sweep, "wb") as f:
+        f.truncate(2 * 2**20)
+    refused(["sweep", str(sweep), "--out", str(tmp_path / "out")], "has 2097152 bytes; at most 1048576", capsys)
+    write_csv(tmp_path / "metrics.csv", [{"seed": 0, "episodes": 100, "episode_reward": 1.0}] * 100)
+    assert len(read_metrics(tmp_path / "metrics.csv")) == 100
+    monkeypatch.setitem(limits.FILE_LIMITS, "metrics.csv", 1000)
+    with pytest.raises(UserError, match=r"metrics.csv '.*' has \d+ bytes; at most 1000"):
+        read_metrics(tmp_path / "metrics.csv")
+
+
+def test_a_file_that_grows_while_it_is_read_is_cut_at_the_limit(tmp_path, monkeypatch):
+    import roverswarm.limits as limits
+
+    path = tmp_path / "metrics.csv"
+    path.write_text("x" * 5000)
+    monkeypatch.setitem(limits.FILE_LIMITS, "metrics.csv", 1000)
+    monkeypatch.setattr(limits.os, "fstat", lambda fd: type("S", (), {"st_size": 10})())  # it was small when opened
+    with pytest.raises(UserError, match="has more than 1000 bytes"):
+        with limits.open_limited(path, "metrics.csv") as f:
+            f.read()
+
+
+def test_a_grid_checks_every_runs_memory_before_the_first_trains(tmp_path, capsys):
+    refused(["reproduce", "--quick", "--ensemble", "100000", "--out", str(tmp_path / "grid")], "--ensemble 100000", capsys)
+    assert not (tmp_path / "grid" / "runs").exists()
