@@ -9,9 +9,9 @@ from roverswarm.env.mars import (
     reset,
     step,
     step_env,
-    validate_params,
 )
 from roverswarm.env.scenarios import SCENARIOS, get_scenario, scenario_table
+from roverswarm.env.validation import validate_params
 
 __all__ = [
     "ACTION_SIZE",

@@ -31,7 +31,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from roverswarm.env.mars import EnvParams, count_text, validate_params
+from roverswarm.env.mars import EnvParams, count_text
+from roverswarm.env.validation import validate_params
 from roverswarm.errors import UserError, require
 
 MAX_BYTES = 1_000_000

@@ -16,9 +16,10 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, observe, reset, step_env, validate_params
+from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, observe, reset, step_env
 from roverswarm.env.render import FrameRenderer
 from roverswarm.env.scenarios import get_scenario
+from roverswarm.env.validation import validate_params
 from roverswarm.errors import UserError
 
 

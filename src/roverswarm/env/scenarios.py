@@ -22,7 +22,8 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 
-from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, validate_params
+from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size
+from roverswarm.env.validation import validate_params
 from roverswarm.errors import UserError, require
 
 MAX_ROVERS = 64
