@@ -73,36 +73,40 @@ def interrupted(tiny_config, tmp_path_factory):
     """A tiny run stopped after 2 of 3 chunks (200 episodes: 5000 transitions seen, 4000 kept)."""
     import os
 
-    import roverswarm.trainer as trainer
-
     out = tmp_path_factory.mktemp("interrupted") / "run"
     config = dataclasses.replace(tiny_config, episodes=300)
-    real, calls = trainer.run_chunk, []
+    from roverswarm.learners import FAMILIES
 
-    def signalled(*args):
-        calls.append(1)
-        if len(calls) == 2:
-            os.kill(os.getpid(), signal.SIGINT)
-        return real(*args)
+    real, calls = dict(FAMILIES), []
 
-    trainer.run_chunk = signalled
+    def signalled(run_chunk):
+        def run(*args):
+            calls.append(1)
+            if len(calls) == 2:
+                os.kill(os.getpid(), signal.SIGINT)
+            return run_chunk(*args)
+
+        return run
+
+    FAMILIES.update({algo: dataclasses.replace(f, run_chunk=signalled(f.run_chunk)) for algo, f in real.items()})
     try:
         with pytest.raises(RunStopped):
             train(config, out=out, progress=False)
     finally:
-        trainer.run_chunk = real
+        FAMILIES.update(real)
     return config, out
 
 
 def test_a_replay_smaller_than_what_a_resumed_run_filled_is_one_line(interrupted):
     from roverswarm.config import validate, with_options
+    from roverswarm.learners import learner_family
     from roverswarm.runs import load_checkpoint
-    from roverswarm.trainer import init_runner, run_buffer
 
     config, out = interrupted
     smaller = with_options(config, {"buffer_size": 1000})
     params = validate(smaller)
-    template = init_runner(smaller, params, run_buffer(smaller, params))
+    family = learner_family(smaller.learner.algo)
+    template = family.init(family.configure(smaller, params), params, smaller.seed)
     with pytest.raises(UserError, match="already holds 4000 transitions per seed .* --buffer-size >= 4000"):
         load_checkpoint(out / "checkpoint.npz", template)
 

@@ -139,12 +139,11 @@ def _reset_all(config: OnPolicyConfig, params: EnvParams, key: jax.Array, episod
     :func:`size_cap`); with --fail-rate, one rover may fail in each."""
     if config.fail_rate > 0:
         params = params.replace(fail_rate=config.fail_rate)
-    k_sizes, k_reset = jax.random.split(key)
-    keys = jax.random.split(k_reset, config.num_envs)
+    keys = jax.random.split(key, config.num_envs)  # the layouts of one size as before sizes could mix
     sizes = sizes_of(config)
     if sizes is None:
         return jax.vmap(reset, in_axes=(0, None))(keys, params)[1]
-    counts = draw_sizes(k_sizes, sizes, config.num_envs, size_cap(config, episodes))
+    counts = draw_sizes(jax.random.fold_in(key, 1), sizes, config.num_envs, size_cap(config, episodes))
     return jax.vmap(lambda k, n: reset(k, sized(params, n)))(keys, counts)[1]
 
 
