@@ -25,7 +25,7 @@ import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable
 
 import flax.linen as nn
 import jax
@@ -35,9 +35,6 @@ from roverswarm.algos.entity import EntityConfig, make_entity_networks
 from roverswarm.algos.learner import AlgoConfig
 from roverswarm.env.entities import nearest_entities, observe_entities
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, EnvState, observe
-
-if TYPE_CHECKING:
-    from roverswarm.algos.ppo import PPOConfig
 
 
 @dataclass(frozen=True)
@@ -96,8 +93,9 @@ class GaussianActor(nn.Module):
         return mean, log_std
 
 
-def networks(learner: AlgoConfig, config: PPOConfig) -> tuple[GaussianActor, MLP]:
-    """The flat view's (actor, value) modules: hidden widths from the learner, the rest from ``config``."""
+def networks(learner: AlgoConfig, config: Any) -> tuple[GaussianActor, MLP]:
+    """The flat view's (actor, value) modules: hidden widths from the learner, the rest from
+    ``config`` (the learner's :class:`~roverswarm.algos.ppo.PPOConfig`)."""
     actor = GaussianActor(learner.hidden, config.activation, config.init_log_std)
     return actor, MLP(learner.hidden, 1, config.activation, 1.0)
 
@@ -124,7 +122,7 @@ def critic_inputs(algo: str, obs: jax.Array) -> jax.Array:
     return _one_hot_rovers(jnp.broadcast_to(obs.reshape(*batch, 1, n * o), (*batch, n, n * o)))
 
 
-def _mlp_kind(learner: AlgoConfig, config: PPOConfig) -> PolicyNetworks:
+def _mlp_kind(learner: AlgoConfig, config: Any) -> PolicyNetworks:
     actor_net, critic_net = networks(learner, config)
 
     def init(key, num_rovers, obs_size):
@@ -153,7 +151,7 @@ def entity_config(learner: AlgoConfig) -> EntityConfig:
     )
 
 
-def _entity_kind(learner: AlgoConfig, config: PPOConfig) -> PolicyNetworks:
+def _entity_kind(learner: AlgoConfig, config: Any) -> PolicyNetworks:
     nets = make_entity_networks(entity_config(learner))
 
     def init(key, num_rovers, obs_size):
@@ -187,7 +185,7 @@ def flat_tokens(view) -> jax.Array:
     return jnp.concatenate([view.own, flat, view.mask.astype(flat.dtype)], axis=-1)
 
 
-def _nearest_kind(learner: AlgoConfig, config: PPOConfig) -> PolicyNetworks:
+def _nearest_kind(learner: AlgoConfig, config: Any) -> PolicyNetworks:
     actor_net, critic_net = networks(learner, config)
     k = learner.entity_nearest
 
@@ -219,7 +217,7 @@ KINDS: dict[str, Callable[[AlgoConfig, Any], PolicyNetworks]] = {
 
 
 @functools.lru_cache(maxsize=None)
-def policy_networks(learner: AlgoConfig, config: PPOConfig) -> PolicyNetworks:
+def policy_networks(learner: AlgoConfig, config: Any) -> PolicyNetworks:
     """The network kind of ``learner.network`` (one record per config: programs that close
     over it are reused)."""
     return KINDS[learner.network](learner, config)
