@@ -14,8 +14,8 @@ rover, then ``epochs`` passes over the B samples in ``minibatches`` shuffled min
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
 from functools import partial
+from typing import Any
 
 import jax
 import jax.numpy as jnp
