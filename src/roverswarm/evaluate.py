@@ -19,7 +19,7 @@ from roverswarm.errors import require
 from roverswarm.limits import check_memory, check_seed, evaluation_parts
 from roverswarm.policies import ORACLE, RANDOM
 from roverswarm.rollout import normalized_score, rollout
-from roverswarm.runs import Partners, Run, SubPolicies, load_policy
+from roverswarm.runs import Partners, Run, SubPolicies, check_fits
 
 
 @dataclass(frozen=True)
@@ -85,7 +85,8 @@ def _targets(run: Run, scenario: str | None) -> list[tuple[str, EnvParams]]:
     if name is None:
         return [(run.config.env_name(), run.params)]
     sizes = scenario_sizes(name)
-    targets = [(name, get_scenario(name))] if len(sizes) == 1 else [(f"paper-{n}", get_scenario(f"paper-{n}")) for n in sizes]
-    for target, params in targets:
-        load_policy(str(run.folder), params.replace(nearest_first=run.params.nearest_first), f"scenario '{target}'")
-    return [(target, params.replace(nearest_first=run.params.nearest_first)) for target, params in targets]
+    names = [name] if len(sizes) == 1 else [f"paper-{n}" for n in sizes]
+    targets = [(n, get_scenario(n).replace(nearest_first=run.params.nearest_first)) for n in names]
+    for target, params in targets:  # the run's own check, without loading its networks once per size
+        check_fits(run, params, f"scenario '{target}'")
+    return targets

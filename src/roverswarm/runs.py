@@ -426,12 +426,18 @@ def load_policy(spec: str, params: EnvParams, target: str, seed: int = 0, hint: 
         f"--policy: expected 'oracle', 'random' or a run folder of `roverswarm train`, got '{spec}'",
     )
     run = Run(spec)
+    check_fits(run, params, target, hint)
+    return run.policy(seed)
+
+
+def check_fits(run: Run, params: EnvParams, target: str, hint: str = "") -> None:
+    """:class:`UserError` unless ``run``'s policies can drive ``params``: any size for an
+    any-size run, else the same numbers of rovers, POIs and traps (``target`` names ``params``)."""
     trained = run.params
     require(
         run.any_size
         or (trained.num_rovers, trained.num_pois, trained.num_traps)
         == (params.num_rovers, params.num_pois, params.num_traps),
-        f"--policy: '{spec}' was trained for {count_text(trained)} ({run.config.env_name()}); {target} has "
+        f"--policy: '{run.folder}' was trained for {count_text(trained)} ({run.config.env_name()}); {target} has "
         f"{count_text(params)}.{' ' + hint if hint else ''}",
     )
-    return run.policy(seed)

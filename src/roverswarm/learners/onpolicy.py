@@ -128,7 +128,8 @@ def _where_env(done: jax.Array, old, new):
 def size_cap(config: OnPolicyConfig, episodes: jax.Array) -> jax.Array:
     """The largest swarm size drawn after ``episodes`` episodes: with --size-curriculum E, it
     grows linearly from the range's smallest to its largest over the first E episodes."""
-    low, high = sizes_of(config)[0], sizes_of(config)[-1]
+    sizes = sizes_of(config)
+    low, high = sizes[0], sizes[-1]
     if config.size_curriculum == 0:
         return jnp.asarray(high)
     return low + jnp.minimum(episodes / config.size_curriculum, 1.0) * (high - low)
