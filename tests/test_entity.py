@@ -434,3 +434,18 @@ def test_numpy_reference_has_teeth(params, batch, flax_outputs, variant):
     """The reference without masking (garbage attended to) or without the 1/sqrt(d) scale
     disagrees with the network: the comparison above would catch either mistake."""
     assert largest_difference(np_networks(params, batch, CONFIG, **variant), flax_outputs) > 1e-2
+
+
+def test_networks_first_made_inside_a_trace_serve_later_calls():
+    """Regression: the on-policy family caches its networks, and they were first made inside
+    the memory check's jax.eval_shape, keeping that trace's arrays; initialising them after
+    it (`roverswarm train --network entity` in a fresh process) raised UnexpectedTracerError."""
+    from roverswarm.algos.ppo_networks import policy_networks
+    from roverswarm.config import ANYSIZE, validate, with_options
+    from roverswarm.limits import network_bytes
+
+    config = with_options(ANYSIZE, {"network": "entity", "entity_dim": 8, "entity_heads": 2, "hidden": (8,)})
+    policy_networks.cache_clear()
+    assert network_bytes(config, validate(config)) > 0  # traces the networks' sizes first
+    actor, value = policy_networks(config.learner, config.ppo).init(jax.random.PRNGKey(0), 3, 0)
+    assert np.isfinite(actor["log_std"]).all() and jax.tree.leaves(value)

@@ -22,6 +22,7 @@ from roverswarm.errors import RunStopped, UserError, require
 from roverswarm.evaluate import EvaluateConfig
 from roverswarm.experiments import ReproduceConfig, reproduce
 from roverswarm.experiments.sweep import SweepConfig
+from roverswarm.export import CHECK_OBSERVATIONS, ExportConfig, export_run
 from roverswarm.limits import read_config
 from roverswarm.mission import MissionConfig, MissionRunConfig
 from roverswarm.runs import CONFIG
@@ -164,6 +165,16 @@ def run_mission(cmd: MissionConfig) -> None:
         console.print(f"wrote {action.out / 'stress.md'}, stress.csv and stress.png")
 
 
+def run_export(cmd: ExportConfig) -> None:
+    result = export_run(cmd.run, cmd.out, cmd.seed)
+    checked = (
+        "not checked against JAX (onnxruntime is not installed)"
+        if result.difference is None
+        else f"ONNX and JAX actions differ by at most {result.difference:.1e} on {CHECK_OBSERVATIONS} random layouts"
+    )
+    Console().print(f"wrote {cmd.out} ({', '.join(result.files)}); {checked}")
+
+
 COMMANDS: dict[str, tuple[type, Callable]] = {
     "scenarios": (ScenariosCommand, run_scenarios),
     "render": (RenderConfig, run_render),
@@ -172,6 +183,7 @@ COMMANDS: dict[str, tuple[type, Callable]] = {
     "sweep": (SweepConfig, run_sweep),
     "reproduce": (ReproduceCommand, run_reproduce),
     "mission": (MissionConfig, run_mission),
+    "export": (ExportConfig, run_export),
 }
 
 

@@ -362,7 +362,8 @@ class Run:
     def learner(self) -> Any:
         """Every seed's networks [S, ...] from the checkpoint (read once)."""
         family = learner_family(self.config.learner.algo)
-        template = family.learners(family.configure(self.config, self.params), self.params)
+        # the template's shapes only (eval_shape): building fresh networks to overwrite them took seconds
+        template = jax.eval_shape(lambda: family.learners(family.configure(self.config, self.params), self.params))
         return _restore(template, read_arrays(self.folder / CHECKPOINT, "learner/"), prefix="learner/")
 
     @property

@@ -70,6 +70,7 @@ from typing import Any, Callable
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from roverswarm.algos.networks import MLP
 from roverswarm.env.entities import OWN_FEATURES, TOKEN_FEATURES
@@ -238,10 +239,12 @@ def make_entity_networks(config: EntityConfig = EntityConfig()) -> EntityNetwork
     view with a single token: their shapes do not depend on M (nor N, P, T)."""
     sizes = (config.dim, config.heads, config.layers, config.layer_norm, config.hidden)
     actor, value, critic = EntityActor(*sizes), EntityValue(*sizes), EntityCritic(*sizes)
-    own = jnp.zeros((OWN_FEATURES,))
-    tokens = jnp.zeros((1, TOKEN_FEATURES))
-    mask = jnp.ones((1,), bool)
-    act, token_act = jnp.zeros((ACTION_SIZE,)), jnp.zeros((1, ACTION_SIZE))
+    # NumPy, not JAX, arrays: the record is cached (ppo_networks.policy_networks), and arrays
+    # made while a caller traces (jax.eval_shape of the networks' sizes) would leak as tracers
+    own = np.zeros((OWN_FEATURES,), np.float32)
+    tokens = np.zeros((1, TOKEN_FEATURES), np.float32)
+    mask = np.ones((1,), bool)
+    act, token_act = np.zeros((ACTION_SIZE,), np.float32), np.zeros((1, ACTION_SIZE), np.float32)
     return EntityNetworks(
         config=config,
         init_actor=lambda key: actor.init(key, own, tokens, mask),

@@ -1,0 +1,145 @@
+"""roverswarm's observation functions in NumPy alone: what an exported policy
+(``roverswarm export``) reads, built from a swarm's state as a user's own estimates give it.
+
+This file imports nothing but NumPy, so it runs where JAX is not installed: ``roverswarm
+export`` copies it beside the model as ``observation.py``. A test holds every function here
+to the package's JAX observation functions (``roverswarm.env.mars.observe``,
+``roverswarm.env.entities.observe_entities`` and ``nearest_entities``) on random states.
+
+Shape legend: N rovers, P points of interest (POIs), T traps; every position and velocity is
+in the map's frame (x, y), as the environment's.
+
+* Flat view (:func:`observe_flat`), [N, O] with O = 4 + 2P + 2T + 2(N - 1): own velocity, own
+  position, then the positions relative to the rover of every POI, every trap and every other
+  rover (index order, skipping itself), or, with ``nearest_first``, each of those three
+  groups ordered nearest first.
+* Entity view (:func:`observe_entities`): ``own`` [N, 4] (velocity, position), ``tokens``
+  [N, M, 9] with M = (N - 1) + P + T, one per other rover, POI and trap in that order, each
+  ``[dx, dy, dvx, dvy, is_rover, is_poi, is_trap, radius, flag]`` relative to the rover (flag:
+  a rover has failed, a POI has been observed this episode), and ``mask`` [N, M] bool (every
+  token here is a real entity). :func:`nearest_entities` cuts it to the K nearest of each type.
+
+Only swarms whose every rover, POI and trap exists are described here (no padded slots):
+give the arrays of what is there.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+OWN_FEATURES = ("vx", "vy", "x", "y")
+"""The own features of the entity view, in order."""
+TOKEN_FEATURES = ("dx", "dy", "dvx", "dvy", "is_rover", "is_poi", "is_trap", "radius", "flag")
+"""The features of one entity token, in order."""
+
+
+def _f32(x) -> np.ndarray:
+    return np.asarray(x, np.float32)
+
+
+def other_rovers(n: int) -> np.ndarray:
+    """[N, N - 1] int: row i lists every rover but i, in index order."""
+    return np.array([[j for j in range(n) if j != i] for i in range(n)], dtype=np.int64).reshape(n, n - 1)
+
+
+def _by_distance(rel: np.ndarray) -> np.ndarray:
+    """[N, K] the order of each row's K relative positions [N, K, 2], nearest first (stable)."""
+    return np.argsort(np.sum(np.square(rel), axis=-1), axis=-1, kind="stable")
+
+
+def observe_flat(rover_pos, rover_vel, poi_pos, trap_pos, nearest_first: bool = False) -> np.ndarray:
+    """The flat view [N, O] (float32) of rovers at ``rover_pos`` [N, 2] moving at ``rover_vel``
+    [N, 2], POIs at ``poi_pos`` [P, 2] and traps at ``trap_pos`` [T, 2]."""
+    pos, vel, pois, traps = _f32(rover_pos), _f32(rover_vel), _f32(poi_pos), _f32(trap_pos)
+    n = len(pos)
+    groups = [pois[None] - pos[:, None], traps[None] - pos[:, None], pos[other_rovers(n)] - pos[:, None]]
+    if nearest_first:
+        groups = [np.take_along_axis(g, _by_distance(g)[..., None], axis=1) for g in groups]
+    return np.concatenate([vel, pos, *(g.reshape(n, 2 * g.shape[1]) for g in groups)], axis=-1)
+
+
+def _tokens(rel_pos: np.ndarray, rel_vel, kind: int, radius, flag) -> np.ndarray:
+    """[N, K, 9] tokens of one type from positions [N, K, 2] and velocities (None: they never
+    move) relative to the rover, the type (0 rover, 1 POI, 2 trap), radius and flag."""
+    tokens = np.zeros((*rel_pos.shape[:2], len(TOKEN_FEATURES)), np.float32)
+    tokens[..., 0:2] = rel_pos
+    if rel_vel is not None:
+        tokens[..., 2:4] = rel_vel
+    tokens[..., 4 + kind] = 1.0
+    tokens[..., 7] = radius
+    tokens[..., 8] = flag
+    return tokens
+
+
+def observe_entities(
+    rover_pos,
+    rover_vel,
+    poi_pos,
+    trap_pos,
+    observed=None,
+    failed=None,
+    rover_radius: float = 0.15,
+    observe_radius=0.1,
+    trap_radius=0.1,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The entity view (own [N, 4], tokens [N, M, 9], mask [N, M] bool). ``observed`` [P]
+    bool: POIs observed so far this episode; ``failed`` [N] bool: rovers that have failed
+    (default: none of either). ``observe_radius`` is a scalar or one per POI [P],
+    ``trap_radius`` a scalar or one per trap [T]: the environment's, see ``policy.json``."""
+    pos, vel, pois, traps = _f32(rover_pos), _f32(rover_vel), _f32(poi_pos), _f32(trap_pos)
+    n, p = len(pos), len(pois)
+    observed = np.zeros(p, bool) if observed is None else np.asarray(observed, bool)
+    failed = np.zeros(n, bool) if failed is None else np.asarray(failed, bool)
+    others = other_rovers(n)
+    tokens = np.concatenate(
+        [
+            _tokens(pos[others] - pos[:, None], vel[others] - vel[:, None], 0, rover_radius, failed[others]),
+            _tokens(pois[None] - pos[:, None], None, 1, _f32(observe_radius), observed),
+            _tokens(traps[None] - pos[:, None], None, 2, _f32(trap_radius), 0.0),
+        ],
+        axis=1,
+    )
+    return np.concatenate([vel, pos], axis=-1), tokens, np.ones(tokens.shape[:2], bool)
+
+
+def nearest_entities(own, tokens, mask, k: int, counts: tuple[int, int, int]):
+    """An entity view cut to the ``k`` nearest real tokens of each type (other rovers, POIs,
+    traps, whose numbers in ``tokens`` are ``counts``), nearest first within a type, then
+    empty tokens (zeros, masked out) where a type has fewer than ``k``: tokens [N, 3k, 9]."""
+    cut_tokens, cut_mask, start = [], [], 0
+    for count in counts:
+        group, exists = tokens[:, start : start + count], mask[:, start : start + count]
+        start += count
+        missing = max(k - count, 0)
+        group = np.concatenate([group, np.zeros((len(group), missing, group.shape[-1]), np.float32)], axis=1)
+        exists = np.concatenate([exists, np.zeros((len(exists), missing), bool)], axis=1)
+        dist = np.where(exists, np.sum(np.square(group[..., :2]), axis=-1), np.inf)
+        order = np.argsort(dist, axis=-1, kind="stable")[:, :k]
+        exists = np.take_along_axis(exists, order, axis=1)
+        cut_tokens.append(np.where(exists[..., None], np.take_along_axis(group, order[..., None], axis=1), 0.0))
+        cut_mask.append(exists)
+    return own, _f32(np.concatenate(cut_tokens, axis=1)), np.concatenate(cut_mask, axis=1)
+
+
+def model_inputs(meta: dict, rover_pos, rover_vel, poi_pos, trap_pos, observed=None, failed=None) -> dict:
+    """The exported model's inputs for one swarm (a batch of one), in the view it was trained
+    on: ``meta`` is the export's ``policy.json``; the state as in :func:`observe_entities`
+    (a flat-view policy reads neither ``observed`` nor ``failed``)."""
+    view, env = meta["view"], meta["env"]
+    if view["kind"] == "flat":
+        return {"obs": observe_flat(rover_pos, rover_vel, poi_pos, trap_pos, view["nearest_first"])[None]}
+    own, tokens, mask = observe_entities(
+        rover_pos,
+        rover_vel,
+        poi_pos,
+        trap_pos,
+        observed,
+        failed,
+        env["rover_radius"],
+        env["observe_radius"],
+        env["trap_radius"],
+    )
+    if view["nearest"]:
+        counts = (len(own) - 1, len(np.asarray(poi_pos)), len(np.asarray(trap_pos)))
+        own, tokens, mask = nearest_entities(own, tokens, mask, view["nearest"], counts)
+    return {"own": own[None], "tokens": tokens[None], "mask": mask[None]}

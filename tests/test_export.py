@@ -1,0 +1,283 @@
+"""``roverswarm export``: ONNX models of every actor kind act as the JAX policies do, fed by the
+NumPy observation reference, in episodes of the JAX environment; the docs' snippet runs with
+numpy and onnxruntime alone; bad exports end with one line and exit code 2."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+import subprocess
+import sys
+import zlib
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from roverswarm import export_numpy
+from roverswarm.config import (
+    ANYSIZE,
+    IPPO,
+    MAPPO,
+    SWARM,
+    TrainConfig,
+    config_to_json,
+    validate,
+    with_options,
+)
+from roverswarm.env import get_scenario
+from roverswarm.env.entities import EntityView, nearest_entities, observe_entities
+from roverswarm.env.mars import NEVER, observe, reset, step_env
+from roverswarm.export import SNIPPET, export_run, random_states
+from roverswarm.learners import learner_family
+from roverswarm.learners.base import Runner
+from roverswarm.runs import CHECKPOINT, CONFIG, Run, atomic_write, save_checkpoint
+
+ort = pytest.importorskip("onnxruntime")  # the export extra (in the test extra too)
+
+DOCS = Path(__file__).parent.parent / "docs" / "export.md"
+EPISODES, SEED = 40, 1  # 40 episodes of 25 steps: 1,000 recorded swarm observations; seed 1 of 2
+
+
+def tiny(base: TrainConfig, options: dict, scenario: str) -> TrainConfig:
+    options = with_options(base, options)
+    return dataclasses.replace(options, scenario=scenario, episodes=100, log_every=100, num_envs=4, seeds=2)
+
+
+ENTITY = {"network": "entity", "entity_nearest": 0, "entity_dim": 8, "entity_heads": 2, "entity_layers": 2}
+KINDS = {  # every actor kind: per-rover and shared off-policy actors, the on-policy mlp, entity and nearest
+    "maddpg": tiny(TrainConfig(), {"hidden": (16, 16), "layer_norm": True, "normalize_obs": True}, "paper-2"),
+    "ddpg-shared": tiny(SWARM, {"algo": "ddpg", "hidden": (16,), "normalize_obs": True}, "paper-3"),
+    "mappo": tiny(MAPPO, {"hidden": (16,)}, "paper-3"),
+    "ippo": tiny(IPPO, {"hidden": (16, 16), "activation": "relu"}, "paper-2"),
+    "entity": tiny(ANYSIZE, {**ENTITY, "hidden": (16,)}, "paper-2..4"),
+    "nearest": tiny(ANYSIZE, {"hidden": (16,), "entity_nearest": 2}, "paper-2..4"),
+}
+EPISODE_SCENARIO = {"entity": "paper-5", "nearest": "paper-5"}  # any-size policies: a size they never saw
+
+
+def make_run(config: TrainConfig, folder: Path, episodes_done: int | None = None) -> Path:
+    """A run folder as training leaves it, with random actor weights (and a random observation
+    normaliser): parity needs no learning. The checkpoint holds ``episodes_done`` episodes
+    (default: all of them, a finished run)."""
+    params = validate(config)
+    family = learner_family(config.learner.algo)
+    shapes = jax.eval_shape(lambda: family.learners(family.configure(config, params), params))
+    rng = np.random.default_rng(zlib.crc32(folder.name.encode()))
+    learner = jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), shapes)
+
+    def draw(path, s):  # kernels at the scale of Flax's default initialisation (LeCun normal)
+        if len(s.shape) >= 3 and s.shape[-2] > 1:  # a kernel [S, ..., in, out]
+            return (rng.standard_normal(s.shape) / np.sqrt(s.shape[-2])).astype(np.float32)
+        scale = jax.tree_util.keystr(path).endswith("['scale']")  # a LayerNorm's scale
+        return (scale + 0.2 * rng.standard_normal(s.shape)).astype(np.float32)
+
+    learner = learner.replace(actor=jax.tree_util.tree_map_with_path(draw, shapes.actor))
+    if getattr(learner, "obs_norm", None) is not None:
+        shape = learner.obs_norm.mean.shape
+        learner = learner.replace(
+            obs_norm=learner.obs_norm.replace(
+                mean=0.3 * rng.standard_normal(shape, np.float32), var=rng.uniform(0.2, 2.0, shape).astype(np.float32)
+            )
+        )
+    done = config.episodes if episodes_done is None else episodes_done
+    runner = Runner(learner, None, np.zeros((config.seeds, 2), np.uint32), np.int32(done), np.int32(0))
+    folder.mkdir(parents=True)
+    atomic_write(folder / CONFIG, lambda f: f.write(config_to_json(config)))
+    save_checkpoint(folder / CHECKPOINT, runner, replay=False, config_json=config_to_json(config))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    """kind -> (run folder, export folder) of seed 1 of every kind."""
+    root = tmp_path_factory.mktemp("export")
+    folders = {}
+    for kind, config in KINDS.items():
+        run = make_run(config, root / "runs" / kind)
+        result = export_run(run, root / "exports" / kind, seed=SEED)
+        assert result.difference < 1e-5  # the export's own check against JAX
+        folders[kind] = (run, root / "exports" / kind)
+    return folders
+
+
+# ----------------------------------------------------------------------------- the NumPy observations
+
+
+@pytest.mark.parametrize("n", [3, 6])
+def test_the_numpy_observations_equal_the_jax_ones(n):
+    """Random states at two swarm sizes, some rovers failed, some POIs observed: the flat view
+    in both orders, the entity view, and its cut to 2 and to 4 of each type (4: more slots
+    than other rovers at N = 3, padded and masked)."""
+    params, count = get_scenario(f"paper-{n}"), 8
+    states = random_states(params, count, seed=n)
+    failing = np.random.default_rng(n).random((count, n)) < 0.4
+    states = states.replace(time=np.full(count, 10, np.int32), fail_step=np.where(failing, 5, NEVER).astype(np.int32))
+
+    @jax.jit
+    def views(states):
+        flat = [jax.vmap(observe, in_axes=(0, None))(states, params.replace(nearest_first=f)) for f in (False, True)]
+        every = jax.vmap(observe_entities, in_axes=(0, None))(states, params)
+        return flat, [every, nearest_entities(every, params, 2), nearest_entities(every, params, 4)]
+
+    flat, entity = jax.device_get(views(states))
+    for e in range(count):
+        s = jax.tree.map(lambda x, e=e: x[e], states)
+        args = (s.rover_pos, s.rover_vel, s.poi_pos, s.trap_pos)
+        for nearest_first, expected in zip((False, True), flat, strict=True):
+            np.testing.assert_allclose(export_numpy.observe_flat(*args, nearest_first), expected[e], atol=1e-6)
+        every = export_numpy.observe_entities(*args, s.observed, failing[e], 0.15, 0.1, 0.1)
+        ours = [every] + [export_numpy.nearest_entities(*every, k, (n - 1, n, n)) for k in (2, 4)]
+        for got, want in zip(ours, entity, strict=True):
+            for a, b in zip(got, (want.own[e], want.tokens[e], want.mask[e]), strict=True):
+                np.testing.assert_allclose(a, b, atol=1e-6)
+    assert failing.any() and (~failing).any()
+
+
+# ----------------------------------------------------------------------------- ONNX against JAX
+
+
+STEP = jax.jit(jax.vmap(step_env, in_axes=(0, 0, None)))
+
+
+def episodes(run: Path, export: Path, params) -> dict:
+    """40 episodes from the same layouts, stepped by the JAX environment: one driven by the JAX
+    policy, one by the ONNX model fed from the NumPy observations (what a user without JAX
+    runs). Returns both episode rewards, final positions, and the ONNX run's recorded inputs
+    and actions."""
+    meta = json.loads((export / "policy.json").read_text())
+    session = ort.InferenceSession(str(export / "policy.onnx"))
+    policy = Run(run).policy(SEED)
+    _, start = jax.vmap(reset, in_axes=(0, None))(jax.random.split(jax.random.PRNGKey(5), EPISODES), params)
+    jax_act = jax.jit(jax.vmap(lambda s: policy.act(None, observe(s, params), s, None, policy.weights, params)))
+    out = {"inputs": [], "actions": []}
+    for driver in ("jax", "onnx"):
+        state, total = start, np.zeros(EPISODES)
+        for _ in range(params.max_steps):
+            if driver == "jax":
+                actions = jax_act(state)
+            else:
+                s = jax.device_get(state)
+                views = [
+                    export_numpy.model_inputs(
+                        meta,
+                        s.rover_pos[e],
+                        s.rover_vel[e],
+                        s.poi_pos[e],
+                        s.trap_pos[e],
+                        s.observed[e],
+                        s.time[e] >= s.fail_step[e],
+                    )
+                    for e in range(EPISODES)
+                ]
+                inputs = {name: np.concatenate([v[name] for v in views]) for name in views[0]}
+                (actions,) = session.run(["actions"], inputs)
+                out["inputs"].append(inputs)
+                out["actions"].append(actions)
+            _, state, rewards, *_ = STEP(state, jnp.asarray(actions), params)
+            total += np.asarray(rewards).sum(axis=-1)
+        out[driver] = (total, np.asarray(state.rover_pos))
+    return out
+
+
+def jax_actions(run: Path, inputs: dict) -> np.ndarray:
+    """The JAX policy's actions on recorded model inputs (flat obs, or an entity view)."""
+    config = Run(run).config
+    family = learner_family(config.learner.algo)
+    view = inputs["obs"] if "obs" in inputs else EntityView(inputs["own"], inputs["tokens"], inputs["mask"])
+    weights = jax.tree.map(lambda x: x[SEED], family.weights(Run(run).learner))
+    return np.asarray(jax.jit(family.act, static_argnums=0)(family.acting(config), weights, view, None))
+
+
+@pytest.mark.parametrize("kind", list(KINDS))
+def test_the_onnx_model_acts_as_the_jax_policy(exported, kind):
+    run, export = exported[kind]
+    params = get_scenario(EPISODE_SCENARIO[kind]) if kind in EPISODE_SCENARIO else Run(run).params
+    out = episodes(run, export, params)
+    recorded = {name: np.concatenate([i[name] for i in out["inputs"]]) for name in out["inputs"][0]}
+    onnx_actions = np.concatenate(out["actions"])
+    assert len(onnx_actions) == EPISODES * params.max_steps == 1000
+    difference = np.abs(onnx_actions - jax_actions(run, recorded)).max()
+    assert difference <= 1e-5, difference
+    assert np.abs(onnx_actions).mean() > 0.1  # the actions are not all near zero
+    (jax_reward, jax_pos), (onnx_reward, onnx_pos) = out["jax"], out["onnx"]
+    np.testing.assert_allclose(onnx_reward, jax_reward, rtol=1e-5)
+    np.testing.assert_allclose(onnx_pos, jax_pos, atol=1e-4)
+
+
+# ----------------------------------------------------------------------------- the docs' snippet
+
+
+def docs_snippet() -> str:
+    """The Python block of docs/export.md that follows 'Run it'."""
+    text = DOCS.read_text()
+    return re.search(r"```python\n(import json\n.*?)```", text, re.DOTALL)[1]
+
+
+def test_the_docs_snippet_is_the_exports(exported):
+    assert docs_snippet() == SNIPPET
+    for _, export in exported.values():
+        assert SNIPPET in (export / "README.md").read_text()
+
+
+@pytest.mark.parametrize("kind", ["ddpg-shared", "entity"])
+def test_the_docs_snippet_runs_with_numpy_and_onnxruntime_alone(exported, kind, tmp_path):
+    run, export = exported[kind]
+    probe = (
+        docs_snippet()
+        + "\nimport sys\nnp.savez(sys.argv[1], actions=actions, **inputs)\n"
+        + "print(sorted({m.split('.')[0] for m in sys.modules} & {'jax', 'jaxlib', 'flax', 'roverswarm'}))\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", probe, str(tmp_path / "out.npz")],
+        cwd=export,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip().splitlines()[-1] == "[]"  # no JAX, no roverswarm in that process
+    saved = dict(np.load(tmp_path / "out.npz"))
+    actions = saved.pop("actions")
+    np.testing.assert_allclose(actions, jax_actions(run, saved), atol=1e-5)
+
+
+# ----------------------------------------------------------------------------- the command
+
+
+def test_the_command_exports_the_seed_it_is_given(exported, tmp_path, capsys):
+    from roverswarm.cli import main
+
+    run, export = exported["mappo"]
+    assert main(["export", str(run), "--out", str(tmp_path / "seed0")]) == 0
+    assert "ONNX and JAX actions differ by at most" in " ".join(capsys.readouterr().out.split())
+    meta = json.loads((tmp_path / "seed0" / "policy.json").read_text())
+    assert (meta["seed"], meta["algo"], meta["view"]["nearest_first"]) == (0, "mappo", True)
+    assert meta["inputs"] == {"obs": ["batch", 3, 20]} and meta["outputs"] == {"actions": ["batch", 3, 2]}
+    obs = {"obs": np.random.default_rng(0).normal(size=(4, 3, 20)).astype(np.float32)}
+    seed0, seed1 = (
+        ort.InferenceSession(str(f / "policy.onnx")).run(None, obs)[0] for f in (tmp_path / "seed0", export)
+    )
+    assert np.abs(seed0 - seed1).max() > 0.1  # another seed's networks
+
+
+def test_refusals_are_one_line_and_exit_code_2(exported, tmp_path, capsys):
+    from roverswarm.cli import main
+
+    run, _ = exported["ippo"]
+    ensemble = make_run(tiny(TrainConfig(), {"hidden": (8,), "ensemble": 2}, "paper-2"), tmp_path / "ensemble")
+    unfinished = make_run(KINDS["ippo"], tmp_path / "unfinished", episodes_done=0)
+    cases = [
+        ([str(tmp_path)], "holds no trained run"),
+        ([str(unfinished)], "is not a finished run: its checkpoint holds 0 of 100 episodes"),
+        ([str(run), "--seed", "2"], r"--seed must be in \[0, 2\)"),
+        ([str(ensemble)], "is a policy ensemble"),
+    ]
+    for args, message in cases:
+        assert main(["export", *args, "--out", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and re.search(message, err[0]), err
+        assert not (tmp_path / "out").exists()
