@@ -15,6 +15,7 @@ from roverswarm.learners import FAMILIES
 from roverswarm.runs import CHECKPOINT, read_metrics
 from roverswarm.trainer import train
 
+
 def timeless(rows: list[dict]) -> list[dict]:
     """Metrics rows without their wall-clock seconds."""
     return [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rows]
