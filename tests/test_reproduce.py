@@ -8,7 +8,6 @@ import shutil
 import signal
 import socket
 import multiprocessing
-import threading
 import time
 from pathlib import Path
 
@@ -26,6 +25,7 @@ from roverswarm.experiments.results import PAPER_TABLE1
 from roverswarm.experiments.significance import holm, paired_change, paired_p, relative_change
 from roverswarm.config import MAPPO, PRESETS, config_from_json, with_options
 from roverswarm.runs import write_csv
+from local_ray import killing_a_worker, local_ray
 
 SCENARIOS = ("paper-2", "paper-3")
 ALGORITHMS = ("ddpg", "maddpg", "maddpg-optimizer")
@@ -423,50 +423,16 @@ def test_the_relative_change_interval_covers_the_truth_95_percent_of_the_time():
     assert 0.92 <= hits / trials <= 0.985
 
 
-def _kill_one_worker(killed: list[int], stop: threading.Event) -> None:
-    """SIGKILL the first Ray worker seen running a training task (once)."""
-    while not stop.is_set() and not killed:
-        for pid in os.listdir("/proc"):
-            if not pid.isdigit():
-                continue
-            try:
-                title = Path(f"/proc/{pid}/cmdline").read_bytes()
-            except OSError:
-                continue
-            if b"ray::train_remote" in title:
-                time.sleep(1.0)  # let it get going first
-                os.kill(int(pid), signal.SIGKILL)
-                killed.append(int(pid))
-                return
-        time.sleep(0.05)
-
-
 def _reproduce_on_ray(config, base) -> list[int]:
-    """Run the grid on a local Ray cluster while a thread kills one of its workers; returns
-    the killed worker's pid. Runs in its own process (see below)."""
-    import ray
-
-    # Ray starts its workers at nice 15: beside other busy processes (the other test worker
-    # runs at nice 0) they starve; the run took 58 s at nice 15 and 9 s at nice 0
-    os.environ["RAY_worker_niceness"] = "0"
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    killed: list[int] = []
-    stop = threading.Event()
-    killer = threading.Thread(target=_kill_one_worker, args=(killed, stop), daemon=True)
-    killer.start()
-    try:
+    """Run the grid on a local Ray cluster while a worker is killed; returns the killed pids."""
+    with local_ray(), killing_a_worker(after=1.0) as killed:  # let it get going first
         reproduce(config, base, live=False)
-    finally:
-        stop.set()
-        ray.shutdown()
     return killed
 
 
 def test_ray_backend_retries_a_killed_worker_and_matches_the_local_backend(base, finished, tmp_path):
     pytest.importorskip("ray")
     config = tiny_grid(tmp_path, scenarios=("paper-2",), algorithms=("maddpg",), backend="ray", jobs=None, retries=2)
-    # Ray's driver runs in a process of its own: its native threads outlive ray.shutdown() and
-    # crashed the test process minutes later (a segfault after the last test, twice on CI)
     with multiprocessing.get_context("spawn").Pool(1) as pool:
         killed = pool.apply(_reproduce_on_ray, (config, base))
     assert killed, "no worker was killed"

@@ -18,7 +18,7 @@ from roverswarm.config import with_options
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
 from roverswarm.experiments.arms import usable_cpus
-from roverswarm.experiments.sweep import SweepConfig, gapped, load_sweep, read_table, sweep
+from roverswarm.experiments.sweep import SweepConfig, evaluation, gapped, load_sweep, read_table, sweep
 from roverswarm.rollout import rollout
 from roverswarm.runs import Run, write_csv
 
@@ -93,6 +93,30 @@ def test_a_rerun_keeps_finished_runs(finished, monkeypatch):
     config, _ = finished
     monkeypatch.setattr(pool_module, "train", lambda *a, **k: pytest.fail("a finished run was trained again"))
     sweep(config, live=False)
+
+
+def test_an_evaluation_is_kept_until_the_run_is_trained_further(finished, tmp_path, monkeypatch):
+    """A run's evaluation.csv serves the same evaluation episodes of the same training length;
+    a run trained further since (extended by `train --resume RUN --episodes M`), or a table
+    that does not say how long its run trained, is evaluated again."""
+    import dataclasses
+    import shutil
+
+    import roverswarm.evaluate as evaluate_module
+
+    config, _ = finished
+    run = load_sweep(config.file, config.out)[1]
+    run = dataclasses.replace(run, folder=shutil.copytree(run.folder, tmp_path / "run"))
+    calls = []
+    fresh = [{"policy": "random", "episode_reward": -1.0}]
+    monkeypatch.setattr(evaluate_module, "evaluate_run", lambda folder, episodes: calls.append(episodes) or fresh)
+    kept = read_table(run.folder / "evaluation.csv")
+    assert {r["trained_episodes"] for r in kept} == {400} and evaluation(run, 50) == kept and calls == []
+    for stale in ({"trained_episodes": 200}, {}):
+        rows = [{**{k: v for k, v in r.items() if k != "trained_episodes"}, **stale} for r in kept]
+        write_csv(run.folder / "evaluation.csv", rows)
+        assert evaluation(run, 50) == [{**fresh[0], "episodes": 50, "trained_episodes": 400}]
+    assert calls == [50, 50] and read_table(run.folder / "evaluation.csv") == evaluation(run, 50)
 
 
 @pytest.mark.skipif(len(usable_cpus()) < 2, reason="needs 2 CPUs")
@@ -218,3 +242,106 @@ def test_a_line_through_a_settings_scores_stops_at_a_scenario_it_did_not_run():
     assert np.isnan(xs[2]) and np.isnan(ys[2]) and (xs[3], ys[3]) == (3, 30.0)
     assert np.isnan(xs[4]) and (xs[5], ys[5]) == (5, 50.0) and len(xs) == 6
     assert gapped([0, 1, 2], [1.0, 2.0, 3.0]) == ([0, 1, 2], [1.0, 2.0, 3.0])
+
+
+def _sweep_on_ray(file, out) -> dict[str, object]:
+    """On one local Ray cluster: `roverswarm sweep FILE --backend ray --address ...` as a
+    command, sent SIGTERM, SIGINT and SIGTERM once its task trains (its exit code, output,
+    the rows its run saved, the locks left); then the same sweep again in this process while
+    a worker is killed (the pids killed)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from local_ray import killing_a_worker, local_ray, wait_for_training
+
+    with local_ray() as address:
+        argv = ["sweep", str(file), "--out", str(out), "--eval-episodes", "50"]
+        argv += ["--backend", "ray", "--address", address]
+        driver = subprocess.Popen(
+            [sys.executable, "-m", "roverswarm.cli", *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+        wait_for_training()
+        time.sleep(1.0)  # past the task's first look at the stop flag
+        for signum in (signal.SIGTERM, signal.SIGINT, signal.SIGTERM):
+            driver.send_signal(signum)
+            time.sleep(0.3)
+        stdout, stderr = driver.communicate(timeout=600)
+        metrics = out / "runs" / "paper-2" / "plain" / "metrics.csv"
+        stopped = {
+            "code": driver.returncode,
+            "stdout": stdout,
+            "stderr": stderr,
+            "rows": read_table(metrics) if metrics.exists() else [],
+            "locks": list(out.rglob(".lock")),
+        }
+        with killing_a_worker(after=0.0) as killed:
+            sweep(SweepConfig(file, out, eval_episodes=50, backend="ray", address=address), live=False)
+    return {**stopped, "killed": killed}
+
+
+def test_a_sweep_on_ray_stops_on_a_signal_resumes_and_retries_a_killed_worker(finished, tmp_path):
+    """`sweep --backend ray`: a finished run is kept; the first signal stops the other's task
+    at its next chunk, whose files come back with a checkpoint (later signals ignored, the
+    command ends in its message, exit 1, no lock left); the rerun sends them with the task,
+    which resumes (the saved rows kept as they were, wall time too), is killed, retried, and
+    ends with the numbers and table of the local backend."""
+    import multiprocessing
+    import shutil
+
+    pytest.importorskip("ray")
+    config, _ = finished
+    spec = yaml.safe_load(config.file.read_text())
+    spec["settings"] = {k: v for k, v in spec["settings"].items() if k != "mappo"}
+    (tmp_path / "two.yaml").write_text(yaml.safe_dump(spec))
+    out = tmp_path / "out"
+    kept = out / "runs" / "paper-2" / "shared-td3"
+    shutil.copytree(config.out / "runs" / "paper-2" / "shared-td3", kept)
+    with multiprocessing.get_context("spawn").Pool(1) as pool:
+        result = pool.apply(_sweep_on_ray, (tmp_path / "two.yaml", out))
+    assert result["code"] == 1 and "Traceback" not in result["stderr"], result["stderr"]
+    assert "interrupted; every running run saved a checkpoint" in result["stderr"]
+    assert "stops at its next chunk" in result["stdout"] and result["locks"] == []
+    saved = result["rows"]
+    assert 0 < len(saved) < 8, "the run must be stopped mid-way"
+    assert result["killed"], "no worker was killed"
+    ours, theirs = (read_table(root / "runs" / "paper-2" / "plain" / "metrics.csv") for root in (out, config.out))
+    assert ours[: len(saved)] == saved  # resumed from what came back, not trained again
+    assert [{k: v for k, v in r.items() if k != "wall_seconds"} for r in ours] == [
+        {k: v for k, v in r.items() if k != "wall_seconds"} for r in theirs
+    ]
+    original = config.out / kept.relative_to(out) / "checkpoint.npz"
+    assert (kept / "checkpoint.npz").read_bytes() == original.read_bytes()
+    table, local = (read_table(root / "sweep.csv") for root in (out, config.out))
+    columns = ("setting", "scores", "mean_score", "collisions", "trap_contacts")
+    assert [{k: r[k] for k in columns} for r in table] == [
+        {k: r[k] for k in columns} for r in local if r["setting"] != "mappo"
+    ]
+    assert not list(out.rglob(".lock"))
+
+
+def test_a_ray_sweep_sends_nothing_while_a_run_folder_is_being_written(finished, tmp_path, capsys, monkeypatch):
+    import socket
+    import subprocess
+
+    from roverswarm.experiments import remote
+
+    monkeypatch.setattr(remote, "_ray", lambda: pytest.fail("Ray was started"))
+    config, _ = finished
+    run = tmp_path / "out" / "runs" / "paper-2" / "plain"
+    run.mkdir(parents=True)
+    writer = subprocess.Popen(["sleep", "60"])  # a live process holds the run's folder
+    try:
+        (run / ".lock").write_text(f"{writer.pid} {socket.gethostname()}")
+        with pytest.raises(UserError, match=f"run 'paper-2 plain': '{run}' is being written by process {writer.pid}"):
+            sweep(SweepConfig(config.file, tmp_path / "out", eval_episodes=50, backend="ray"), live=False)
+    finally:
+        writer.kill()
+        writer.wait()
+    assert not (tmp_path / "out" / ".lock").exists() and not (tmp_path / "out" / "runs" / "paper-2" / "mappo").exists()
+    argv = ["sweep", str(config.file), "--out", str(tmp_path / "out")]
+    assert main([*argv, "--address", "x:1"]) == 2
+    assert "--address needs --backend ray" in capsys.readouterr().err
+    assert main([*argv, "--backend", "ray", "--jobs", "1"]) == 2
+    assert "--jobs is for --backend local" in capsys.readouterr().err

@@ -7,6 +7,8 @@ A :class:`roverswarm.errors.UserError` ends the command with one line on stderr 
 
 from __future__ import annotations
 
+import contextlib
+import io
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,7 +19,7 @@ from rich.console import Console
 from rich.table import Table
 
 from roverswarm.animation import RenderConfig
-from roverswarm.config import PRESETS, TrainConfig, resume_conflicts
+from roverswarm.config import PRESETS, TrainConfig, resumed_config
 from roverswarm.errors import RunStopped, UserError, require
 from roverswarm.evaluate import EvaluateConfig
 from roverswarm.experiments import ReproduceConfig, reproduce
@@ -47,7 +49,8 @@ class TrainCommand:
     out: Path | None = None
     """Output folder (config.json, metrics.csv, tb/, checkpoint.npz, learning_curve.png)."""
     resume: Path | None = None
-    """Continue the interrupted run in this folder; options given with it must match its config."""
+    """Continue the interrupted run in this folder with its own config; with --episodes M,
+    extend it (finished or not) to M episodes per seed (docs/training.md#extending-a-run)."""
 
 
 @dataclass(frozen=True)
@@ -71,8 +74,7 @@ def run_train(cmd: TrainCommand) -> None:
             f"--resume: the run in '{cmd.resume}' is --algo {saved.learner.algo} and --preset {cmd.preset} trains "
             f"--algo {algo}; resume it without --preset",
         )
-        resume_conflicts(cmd.config, PRESETS[cmd.preset], saved)
-        result = train(saved, out=cmd.resume, resume=True)
+        result = train(resumed_config(cmd.config, saved), out=cmd.resume, resume=True)
     last = [r for r in result.metrics if r["episodes"] == result.metrics[-1]["episodes"]]
     mean = sum(r["episode_reward"] for r in last) / len(last)
     Console().print(
@@ -187,35 +189,94 @@ COMMANDS: dict[str, tuple[type, Callable]] = {
 }
 
 
-def _preset_defaults(argv: list[str]) -> dict[str, object]:
-    """Default instances of the commands: ``train --preset NAME`` starts from that preset."""
-    preset = "default"
-    if argv[:1] == ["train"]:
-        for i, arg in enumerate(argv):
-            if arg == "--preset" and i + 1 < len(argv):
-                preset = argv[i + 1]
-            elif arg.startswith("--preset="):
-                preset = arg.split("=", 1)[1]
+def _option(argv: list[str], name: str) -> str | None:
+    """The value of option ``name`` in ``argv`` (``--name VALUE`` or ``--name=VALUE``; the last one)."""
+    value = None
+    for i, arg in enumerate(argv):
+        if arg == name and i + 1 < len(argv):
+            value = argv[i + 1]
+        elif arg.startswith(name + "="):
+            value = arg.split("=", 1)[1]
+    return value
+
+
+def _train_defaults(argv: list[str]) -> dict[str, object]:
+    """Default instances of the commands: ``train --preset NAME`` starts from that preset;
+    ``train --resume RUN`` from the run's own config, so that an option given beside it is
+    one that changes the run (only ``--episodes`` may: :func:`~roverswarm.config.resumed_config`)."""
+    if argv[:1] != ["train"]:
+        return {}
+    preset = _option(argv, "--preset") or "default"
     if preset not in PRESETS:
         return {}  # tyro reports the bad choice
-    return {"train": TrainCommand(preset=preset, config=PRESETS[preset])}
+    config = PRESETS[preset]
+    resume = _option(argv, "--resume")
+    if resume is not None:
+        with contextlib.suppress(UserError, OSError):  # run_train reports it
+            config = read_config(Path(resume) / CONFIG)
+    return {"train": TrainCommand(preset=preset, config=config)}
+
+
+def _value_error(text: str) -> str | None:
+    """The message of tyro's box for a value it could not convert (``--episodes 2.5``), in one
+    line; None for any other output."""
+    start = text.find("Error parsing ")
+    if start < 0:
+        return None
+    parts = []
+    for line in text[start:].splitlines():
+        line = line.strip("│| ")  # the box's sides (ASCII ones where the output cannot show others)
+        if not line or set(line) <= set("─-"):  # the rule below the message
+            break
+        parts.append(line)
+    option, _, message = " ".join(parts).removeprefix("Error parsing ").partition(": ")
+    conversions = {
+        "invalid literal for int() with base 10: ": "an integer",
+        "could not convert string to float: ": "a number",
+    }
+    for said, kind in conversions.items():
+        if message.startswith(said):
+            return f"{option} must be {kind}, got {message.removeprefix(said)}"
+    return f"{option}: {message}"
+
+
+def _parse(commands: tuple, argv: list[str]):
+    """tyro's parse of ``argv``. A value it cannot convert is a :class:`UserError` (one line
+    and exit code 2, as every other bad value); its other messages (help, unknown options) are
+    its own."""
+    captured = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(captured):
+            cmd = tyro.cli(
+                Union[commands],  # type: ignore[valid-type]
+                prog="roverswarm",
+                config=(tyro.conf.OmitArgPrefixes, tyro.conf.OmitSubcommandPrefixes),
+                description="Multi-agent reinforcement learning of rover swarms exploring a planetary surface.",
+                args=argv,
+            )
+    except SystemExit as exit:
+        line = _value_error(captured.getvalue()) if exit.code else None
+        if line is None:
+            sys.stderr.write(captured.getvalue())
+            raise
+        raise UserError(line) from None
+    sys.stderr.write(captured.getvalue())
+    return cmd
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``roverswarm`` command. Returns the exit code (0, or 2 for user errors)."""
     argv = sys.argv[1:] if argv is None else argv
-    defaults = _preset_defaults(argv)
+    defaults = _train_defaults(argv)
     commands = tuple(
         Annotated[cls, tyro.conf.subcommand(name=name, **({"default": defaults[name]} if name in defaults else {}))]
         for name, (cls, _) in COMMANDS.items()
     )
-    cmd = tyro.cli(
-        Union[commands],  # type: ignore[valid-type]
-        prog="roverswarm",
-        config=(tyro.conf.OmitArgPrefixes, tyro.conf.OmitSubcommandPrefixes),
-        description="Multi-agent reinforcement learning of rover swarms exploring a planetary surface.",
-        args=argv,
-    )
+    try:
+        cmd = _parse(commands, argv)
+    except UserError as error:  # a value of the wrong type
+        print(f"roverswarm: error: {error}", file=sys.stderr)
+        return 2
     from roverswarm.jaxcache import enable_compilation_cache
 
     enable_compilation_cache()

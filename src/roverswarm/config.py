@@ -298,13 +298,21 @@ def with_options(base: TrainConfig, options: dict[str, object], where: str = "op
     return config
 
 
-def resume_conflicts(given: TrainConfig, defaults: TrainConfig, saved: TrainConfig) -> None:
-    """Options ``given`` beside a resume (those that differ from ``defaults``) must match the
-    ``saved`` run's; :class:`UserError` naming the first that does not."""
-    values, unset, kept = (fields_by_name(c) for c in (given, defaults, saved))
+RESUME_CHANGES = ("episodes",)
+"""The options a resumed run may change: ``--episodes``, to extend a finished or interrupted
+run (docs/training.md#extending-a-run). Every other one is the run's own."""
+
+
+def resumed_config(given: TrainConfig, saved: TrainConfig) -> TrainConfig:
+    """The config a resume of the run trained with ``saved`` trains: its own, with ``given``'s
+    :data:`RESUME_CHANGES`; :class:`UserError` naming the first other option in which
+    ``given`` differs from the run."""
+    values, kept = fields_by_name(given), fields_by_name(saved)
     for name, value in values.items():
-        if value != unset[name]:
-            require(value == kept[name], f"--resume: the run has {name}={kept[name]!r}, not {value!r}")
+        require(
+            name in RESUME_CHANGES or value == kept[name], f"--resume: the run has {name}={kept[name]!r}, not {value!r}"
+        )
+    return dataclasses.replace(saved, **{name: values[name] for name in RESUME_CHANGES})
 
 
 def config_to_json(config: TrainConfig) -> str:

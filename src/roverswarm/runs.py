@@ -23,7 +23,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from roverswarm.config import TrainConfig, config_from_json, fields_by_name, validate
+from roverswarm.buffers.base import placed
+from roverswarm.config import RESUME_CHANGES, TrainConfig, config_from_json, fields_by_name, validate
 from roverswarm.env.mars import EnvParams, count_text
 from roverswarm.errors import UserError, require
 from roverswarm.learners import learner_family
@@ -160,19 +161,21 @@ CHECKPOINT_CONFIG = "meta/config_json"
 
 def checkpoint_changes(path: Path, config: TrainConfig) -> list[str]:
     """The fields in which ``config`` differs from the config checkpoint ``path`` was trained
-    with (none for a checkpoint written before it kept its config)."""
+    with (none for a checkpoint written before it kept its config), but for those a resume
+    may change (:data:`~roverswarm.config.RESUME_CHANGES`)."""
     kept = read_arrays(path, CHECKPOINT_CONFIG).get(CHECKPOINT_CONFIG)
     if kept is None:
         return []
     trained = fields_by_name(config_from_json(kept.tobytes().decode()))
-    return [name for name, value in fields_by_name(config).items() if trained.get(name) != value]
+    changed = [name for name, value in fields_by_name(config).items() if trained.get(name) != value]
+    return [name for name in changed if name not in RESUME_CHANGES]
 
 
 def save_checkpoint(path: Path, runner, replay: bool = True, config_json: str | None = None) -> None:
     """Write ``runner`` (the trainer's state: ``learner``, ``buffer`` and counters) to ``path``
     atomically (temp file, then rename); plain arrays, no pickle.
 
-    Only the filled part of the replay is written; loading pads it back with zeros. With
+    Only the filled part of the replay is written; loading pads it back. With
     ``replay=False`` (a finished run: nothing left to train) the replay is left out, which
     makes the file hundreds of times smaller.
     """
@@ -219,25 +222,34 @@ def read_arrays(path: Path, prefix: str = "") -> dict[str, np.ndarray]:
         raise UserError(f"'{path}' cannot be read ({error}); it is truncated or not a roverswarm checkpoint") from error
 
 
-def load_checkpoint(path: Path, template):
-    """Read a runner written by :func:`save_checkpoint` into the structure of ``template``."""
+def load_checkpoint(path: Path, template, buffer=None):
+    """Read a runner written by :func:`save_checkpoint` into the structure of ``template``.
+
+    A finished run's checkpoint keeps no replay: ``template``'s empty one is kept. A replay
+    of another capacity (a run whose ``--episodes`` changed: docs/training.md#extending-a-run)
+    is :func:`~roverswarm.buffers.base.placed` into ``template``'s and made whole by
+    ``buffer`` (its :class:`~roverswarm.buffers.base.Buffer`)."""
     flat = read_arrays(path)
     if template.buffer is None:
         return _restore(template, flat)
-    capacity = jax.tree.leaves(template.buffer.data)[0].shape[1]
+    empty = _flatten(serialization.to_state_dict(template.buffer), "buffer/")
     if not any(k.startswith("buffer/") for k in flat):  # a finished run's checkpoint: no replay kept
-        flat.update(_flatten(serialization.to_state_dict(template.buffer), "buffer/"))
+        return _restore(template, {**flat, **empty})
+    capacity = jax.tree.leaves(template.buffer.data)[0].shape[1]
+    resized = False
     for key, x in flat.items():
-        if key.startswith("buffer/data/"):
+        if key.startswith("buffer/data/"):  # kept up to the filled part
             require(
                 x.shape[1] <= capacity,
                 f"--buffer-size: this run's replay already holds {x.shape[1]} transitions per seed and the "
                 f"config gives room for {capacity}; resume with --buffer-size >= {x.shape[1]}",
             )
-            flat[key] = np.concatenate(
-                [x, np.zeros((x.shape[0], capacity - x.shape[1], *x.shape[2:]), x.dtype)], axis=1
-            )
-    return _restore(template, flat)
+        elif key in empty and x.shape != empty[key].shape:
+            resized = True
+        if key in empty:
+            flat[key] = placed(x, empty[key])
+    runner = _restore(template, flat)
+    return runner.replace(buffer=jax.vmap(buffer.resized)(runner.buffer)) if resized else runner
 
 
 def metric_rows(

@@ -24,7 +24,7 @@ import numpy as np
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from tensorboardX import SummaryWriter
 
-from roverswarm.config import TrainConfig, config_to_json, fields_by_name, validate, with_mission_text
+from roverswarm.config import RESUME_CHANGES, TrainConfig, config_to_json, fields_by_name, validate, with_mission_text
 from roverswarm.env.mars import EnvParams
 from roverswarm.errors import RunStopped, require
 from roverswarm.learners import learner_family
@@ -37,6 +37,7 @@ from roverswarm.runs import (
     checkpoint_changes,
     folder_lock,
     load_checkpoint,
+    read_arrays,
     metric_rows,
     plot_learning_curve,
     read_metrics,
@@ -95,8 +96,11 @@ def train(
     With ``out``, writes there: ``config.json``, ``metrics.csv`` (one row per seed per
     ``log_every`` episodes), TensorBoard events in ``tb/``, ``checkpoint.npz`` and
     ``learning_curve.png``. ``resume=True`` continues from ``out``'s checkpoint and gives the
-    same numbers as an unbroken run. Same config => identical metrics. ``on_chunk(episodes)``
-    is called after every chunk (e.g. to draw a summary of many runs instead of the bar).
+    same numbers as an unbroken run; ``config`` is the run's own but for ``episodes``, which
+    may grow to extend a finished or interrupted run (docs/training.md#extending-a-run). Same
+    config => identical metrics. ``on_chunk(episodes)`` is called after every chunk (e.g. to
+    draw a summary of many runs instead of the bar); if it returns true, the run stops there
+    as on Ctrl-C (a checkpoint, then :class:`~roverswarm.errors.RunStopped`).
     """
     if config.mission is not None:  # kept absolute and with its content: resume and evaluate need not find the file
         config = with_mission_text(config)
@@ -153,6 +157,35 @@ def _check_replay_fits(config: TrainConfig, params: EnvParams) -> None:
     )
 
 
+def _check_resumable(config: TrainConfig, out: Path) -> None:
+    """``out`` holds a run trained with ``config`` but for its episodes (:data:`RESUME_CHANGES`),
+    which may grow to extend it, never below what the checkpoint has trained; else
+    :class:`UserError`."""
+    checkpoint = out / CHECKPOINT
+    require(
+        checkpoint.exists() and (out / CONFIG).exists(),
+        f"--resume: no run to continue in '{out}' (config.json and checkpoint.npz)",
+    )
+    saved = fields_by_name(read_config(out / CONFIG))
+    differ = [n for n, value in fields_by_name(config).items() if saved[n] != value and n not in RESUME_CHANGES]
+    require(
+        not differ,
+        f"--resume: the run in '{out}' has other settings ({', '.join(differ)}); resume it with its own config",
+    )
+    edited = checkpoint_changes(checkpoint, config)
+    require(
+        not edited,
+        f"--resume: '{out / CONFIG}' was edited since its checkpoint was written ({', '.join(edited)}); "
+        "restore the values the run was trained with, or start a new run",
+    )
+    done = int(read_arrays(checkpoint, "episodes").get("episodes", 0))
+    require(
+        config.episodes >= done,
+        f"--episodes {config.episodes} is below the {done} episodes this run has trained per seed; a run is "
+        f"extended, never shortened: give --episodes >= {done}",
+    )
+
+
 def _train(
     config: TrainConfig,
     params: EnvParams,
@@ -163,30 +196,15 @@ def _train(
 ) -> Result:
     family = learner_family(config.learner.algo)
     _check_replay_fits(config, params)
+    if out is not None and resume:
+        _check_resumable(config, out)
     program = family.configure(config, params)
     runner = family.init(program, params, config.seed)
     total = jnp.int32(config.episodes)  # data, not part of the compiled program
     rows: list[dict[str, float]] = []
     if out is not None:
-        checkpoint = out / CHECKPOINT
         if resume:
-            require(
-                checkpoint.exists() and (out / CONFIG).exists(),
-                f"--resume: no run to continue in '{out}' (config.json and checkpoint.npz)",
-            )
-            saved = fields_by_name(read_config(out / CONFIG))
-            differ = [name for name, value in fields_by_name(config).items() if saved[name] != value]
-            require(
-                not differ,
-                f"--resume: the run in '{out}' has other settings ({', '.join(differ)}); resume it with its own config",
-            )
-            edited = checkpoint_changes(checkpoint, config)
-            require(
-                not edited,
-                f"--resume: '{out / CONFIG}' was edited since its checkpoint was written ({', '.join(edited)}); "
-                "restore the values the run was trained with, or start a new run",
-            )
-            runner = load_checkpoint(checkpoint, runner)
+            runner = load_checkpoint(out / CHECKPOINT, runner, family.replay_buffer(program, params))
             done = int(runner.episodes)
             rows = [r for r in read_metrics(out / METRICS) if r["episodes"] <= done] if (out / METRICS).exists() else []
             require(
@@ -196,7 +214,7 @@ def _train(
             )
         else:
             require(
-                not checkpoint.exists(),
+                not (out / CHECKPOINT).exists(),
                 f"'{out}' already holds a run; continue it with --resume or choose another --out",
             )
             out.mkdir(parents=True, exist_ok=True)
@@ -248,8 +266,8 @@ def _train(
                         for k, v in r.items():
                             if k not in ("seed", "episodes"):
                                 writer.add_scalar(f"seed_{int(r['seed'])}/{k}", v, episodes)
-                if on_chunk is not None:
-                    on_chunk(episodes)
+                if on_chunk is not None and on_chunk(episodes):
+                    stop.raised = True
                 bar.update(
                     task,
                     completed=episodes,

@@ -12,6 +12,8 @@ A :class:`Buffer` is a frozen record of pure functions (Flashbax style)::
     draw(state, key)                   -> Draw          (G independent batches of B indices, one per group)
     set_priorities(state, idx, losses) -> BufferState   (idx, losses [G, B]; no-op if uniform)
     refresh(state, due)                -> BufferState   (re-rank if ``due``; no-op if uniform)
+    resized(state)                     -> BufferState   (a replay of another capacity, :func:`placed`
+                                                         into this one, made whole; no-op if uniform)
 
 and ``sample(state, key)`` -> :class:`Sample`, a draw with its transitions gathered, so the
 learner never knows which kind it has. A record is any pytree of arrays with a ``policy``
@@ -35,6 +37,7 @@ from typing import Any, Callable, Literal
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from roverswarm.buffers.partitions import add_partitions, init_partitions, nth_newest
@@ -87,6 +90,9 @@ class Buffer:
     draw: Callable[[BufferState, jax.Array], Draw]
     set_priorities: Callable[[BufferState, jax.Array, jax.Array], BufferState]
     refresh: Callable[[BufferState, jax.Array], BufferState]
+    resized: Callable[[BufferState], BufferState] = lambda state: state
+    """One seed's replay of another capacity whose arrays were :func:`placed` into this one's,
+    made whole (the ranked replay recomputes the running totals of its sampling table)."""
 
     def sample(self, state: BufferState, key: jax.Array) -> Sample:
         """A draw and its transitions."""
@@ -103,6 +109,24 @@ def empty_state(capacity: int, example: Transition, num_policies: int, extra: An
         parts = init_partitions(jnp.shape(example.policy)[-1] * num_policies, capacity)
     counter = lambda: jnp.zeros((), jnp.int32)  # noqa: E731 (separate arrays: donated state)
     return BufferState(data=data, position=counter(), size=counter(), extra=extra, partitions=parts)
+
+
+def placed(saved: np.ndarray, empty: np.ndarray) -> np.ndarray:
+    """An array of a replay of another capacity in the shape of the same array of an empty
+    replay (``empty``): the part of ``saved`` that fits, at the start of every axis, and
+    ``empty``'s values beyond it.
+
+    Exact for a replay whose ring has not wrapped (its transitions in slots 0 .. size - 1,
+    every array beyond them as an empty replay holds it) and that fits: the state a replay
+    of the new capacity would hold after the same transitions, but for running totals that
+    :attr:`Buffer.resized` recomputes. (A replay of ``C`` transitions capped at a run's own,
+    whose run is extended, has never wrapped: see ``docs/training.md``.)"""
+    if saved.shape == empty.shape:
+        return saved
+    common = tuple(slice(0, min(a, b)) for a, b in zip(saved.shape, empty.shape))
+    out = np.array(empty, copy=True)
+    out[common] = saved[common]
+    return out
 
 
 def write(state: BufferState, transitions: Transition) -> tuple[BufferState, jax.Array]:

@@ -149,13 +149,14 @@ def _tables(loss: jax.Array, valid: jax.Array, capacity: int, alpha: float, read
     total = weights.sum(axis=1)
     share = jnp.pad(weights / jnp.maximum(total, 1e-30)[:, None], ((0, 0), (0, _padded(capacity) - capacity)))
     slot_sums = _running_sums(share.reshape(groups, -1, FAN_OUT))
-    group_sums = _running_sums(slot_sums[:, :, -1].reshape(groups, -1, FAN_OUT))
-    return (
-        slot_sums.reshape(groups, -1),
-        group_sums.reshape(groups, -1),
-        jnp.cumsum(group_sums[:, :, -1], axis=1),
-        total,
-    )
+    group_sums = _running_sums(slot_sums[:, :, -1].reshape(groups, -1, FAN_OUT)).reshape(groups, -1)
+    return slot_sums.reshape(groups, -1), group_sums, _block_cdf(group_sums), total
+
+
+def _block_cdf(group_sums: jax.Array) -> jax.Array:
+    """[..., C' / F^2] running sums of the blocks' shares, from the rows' running sums
+    within each block [..., C' / F] (each block's total is its last row's sum)."""
+    return jnp.cumsum(group_sums.reshape(*group_sums.shape[:-1], -1, FAN_OUT)[..., -1], axis=-1)
 
 
 def _descend(sums: jax.Array, row: jax.Array, target: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -359,4 +360,9 @@ def ranked_buffer(
         loss = state.extra.loss.at[agent[:, None], indices].set(losses)
         return state.replace(extra=state.extra.replace(loss=loss))
 
-    return Buffer(capacity, batch_size, num_agents, num_policies, init, add, draw, set_priorities, refresh)
+    def resized(state: BufferState) -> BufferState:
+        # the blocks' running sums run on past the stored transitions (beyond them every block
+        # holds the total), where an empty replay holds zeros; the rest is as placed
+        return state.replace(extra=state.extra.replace(block_cdf=_block_cdf(state.extra.group_sums)))
+
+    return Buffer(capacity, batch_size, num_agents, num_policies, init, add, draw, set_priorities, refresh, resized)

@@ -54,8 +54,34 @@ OPTIMIZER_OPTIONS: dict[str, Callable[[str], object]] = {
 """The options an optimizer arm (``--variants``) may set, the ranked replay's, and how each value is read."""
 
 
+@dataclass(frozen=True, kw_only=True)
+class Backend:
+    """Where the runs of a grid or a sweep train (``reproduce``, ``sweep``)."""
+
+    backend: Literal["local", "ray"] = "local"
+    """`local`: runs on this machine (see --jobs); `ray`: one Ray task per run, retried if its
+    worker dies; an interrupted run resumes in its task (docs/reproduce.md#on-ray)."""
+    jobs: int | None = None
+    """Local backend: runs trained side by side, each in its own process on its share of the
+    CPUs (in the order given). Default: one at a time for runs under 5000 episodes, else as
+    many as the CPUs, the memory the runs need and the runs left allow; 1 trains them one
+    after another in this process."""
+    address: str | None = None
+    """Ray cluster address for --backend ray (default: start a local Ray instance)."""
+    retries: int = 3
+    """Ray: times a run is retried when its worker dies."""
+
+
+def check_backend(config: Backend) -> None:
+    """The backend options are in range and go together; else :class:`UserError` naming one."""
+    require(config.retries >= 0, f"--retries must be >= 0, got {config.retries}")
+    require(config.address is None or config.backend == "ray", "--address needs --backend ray")
+    check_jobs(config.jobs)
+    require(config.jobs is None or config.backend == "local", "--jobs is for --backend local (Ray places its tasks)")
+
+
 @dataclass(frozen=True)
-class ReproduceConfig:
+class ReproduceConfig(Backend):
     """The grid of the paper's section IV and where its results go."""
 
     out: Path = Path("results/paper")
@@ -116,17 +142,6 @@ class ReproduceConfig:
     past 20,000 memory mappings): faster for grids of tiny runs, whose programs are mostly too
     quick to compile for the on-disk cache to keep them; peak memory grows with the runs (the
     quick grid 2.1 GB instead of 0.9 GB)."""
-    backend: Literal["local", "ray"] = "local"
-    """`local`: runs on this machine (see --jobs); `ray`: one Ray task per run."""
-    jobs: int | None = None
-    """Local backend: runs trained side by side, each in its own process on its share of the
-    CPUs. Default: one at a time for runs under 5000 episodes (--quick), else as many as the
-    CPUs, the memory the runs need and the runs left allow; 1 trains them one after another
-    in this process."""
-    address: str | None = None
-    """Ray cluster address for --backend ray (default: start a local Ray instance)."""
-    retries: int = 3
-    """Ray: times a run is retried when its worker dies."""
 
     @property
     def grid_seeds(self) -> int:
@@ -219,12 +234,9 @@ def plan(config: ReproduceConfig, base: TrainConfig | None = None) -> list[GridR
     require(len(set(sizes)) == len(sizes), "--scenarios: give each swarm size N once (the report compares by N)")
     require(len(set(config.algorithms)) == len(config.algorithms) > 0, "--algorithms: give each algorithm once")
     require(config.grid_seeds >= 1, f"--seeds must be >= 1, got {config.grid_seeds}")
-    require(config.retries >= 0, f"--retries must be >= 0, got {config.retries}")
     require(config.grid_time_chunks >= 0, f"--time-chunks must be >= 0, got {config.grid_time_chunks}")
     require(config.grid_eval_episodes >= 1, f"--eval-episodes must be >= 1, got {config.grid_eval_episodes}")
-    require(config.address is None or config.backend == "ray", "--address needs --backend ray")
-    check_jobs(config.jobs)
-    require(config.jobs is None or config.backend == "local", "--jobs is for --backend local (Ray places its tasks)")
+    check_backend(config)
     require(
         not config.variants or any(a in OPTIMIZERS for a in config.algorithms),
         f"--variants needs {' or '.join(OPTIMIZERS)} in --algorithms",

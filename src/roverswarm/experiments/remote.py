@@ -1,58 +1,176 @@
-"""Training a grid's runs on a Ray cluster (``--backend ray``)."""
+"""Training the runs of a grid or a sweep on a Ray cluster (``--backend ray``).
+
+Each run is one Ray task (one CPU), retried if its worker dies (``--retries``). A task trains
+in the worker's scratch space (workers need not share a file system): an interrupted run's
+files go with its task, which resumes it, and the files of the run come back to its folder
+when the task ends. While its task is out, the command holds the run folder's lock, as a run
+training here does, so a second writer is refused.
+
+Ctrl-C or SIGTERM (:class:`~roverswarm.experiments.stopping.JobsStop`: the first asks, later
+ones are ignored until the tasks have ended) sets a flag the tasks read after every chunk
+(:class:`StopFlag`, a Ray actor): each running task stops at its next chunk with a checkpoint
+and returns its files, a task not started yet returns nothing, and rerunning the command
+resumes every run from what came back.
+"""
 
 from __future__ import annotations
 
-import shutil
+import contextlib
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 from roverswarm.config import config_from_json, config_to_json
-from roverswarm.errors import UserError
-from roverswarm.experiments.arms import GridRun
+from roverswarm.errors import RunStopped, UserError
+from roverswarm.experiments.arms import GridRun, episodes_done, status
 from roverswarm.experiments.live import Summary
+from roverswarm.experiments.stopping import JobsStop
+from roverswarm.runs import CHECKPOINT, LOCK, atomic_write, folder_lock
 from roverswarm.trainer import train
 
+Files = dict[str, bytes]
+"""A run folder's files by their path inside it."""
 
-def train_remote(config_json: str) -> dict[str, bytes]:
-    """A Ray task: train one run in a scratch folder, return its files {relative path: bytes}."""
+
+class StopFlag:
+    """A Ray actor: whether the command asked its tasks to stop."""
+
+    def __init__(self):
+        self.value = False
+
+    def ask(self) -> None:
+        self.value = True
+
+    def asked(self) -> bool:
+        return self.value
+
+
+def read_files(folder: Path) -> Files:
+    """Every file of run folder ``folder`` but its lock and temporary files."""
+    return {
+        str(p.relative_to(folder)): p.read_bytes()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and p.name != LOCK and not p.name.endswith(".tmp")
+    }
+
+
+def write_files(folder: Path, files: Files) -> None:
+    """``files`` into ``folder``, each atomically, the checkpoint last: at every moment the
+    folder holds a run that resumes (a checkpoint never ahead of its metrics)."""
+    for name in sorted(files, key=lambda name: name == CHECKPOINT):
+        path = folder / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write(path, lambda f, content=files[name]: f.write(content), binary=True)
+
+
+def train_remote(config_json: str, files: Files | None, stop) -> tuple[Files, str | None] | None:
+    """A Ray task: train one run in a scratch folder, resuming the interrupted run ``files``
+    holds (if any), and stop at the next chunk once ``stop`` (a :class:`StopFlag`) is set.
+    Returns the run folder's files and why the run stopped before its end (None: it finished),
+    or None if the stop came before it started."""
+    import ray
+
     from roverswarm.jaxcache import enable_compilation_cache
 
+    if ray.get(stop.asked.remote()):
+        return None
     enable_compilation_cache()
     with tempfile.TemporaryDirectory() as scratch:
         out = Path(scratch) / "run"
-        train(config_from_json(config_json), out=out, progress=False)
-        return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+        out.mkdir()
+        write_files(out, files or {})
+
+        def asked(episodes: int) -> bool:
+            return ray.get(stop.asked.remote())
+
+        try:
+            train(config_from_json(config_json), out=out, resume=bool(files), progress=False, on_chunk=asked)
+            stopped = None
+        except RunStopped as error:  # asked to, or a non-finite loss (the last good checkpoint kept)
+            stopped = str(error)
+        return read_files(out), stopped
 
 
-def run_ray(runs: list[GridRun], summary: Summary, address: str | None, retries: int) -> None:
-    """Send each run to a Ray cluster as one task (retried if its worker dies); write the
-    returned files into the run's folder as each task completes.
-
-    A task trains its run from the start in the worker's scratch space (workers need not
-    share a file system), so a retried or previously interrupted run starts over there. The
-    summary shows submitted runs as running and updates as each one returns."""
+def _ray():
     try:
         import ray
     except ImportError as error:
         raise UserError("--backend ray needs Ray: pip install 'roverswarm[ray]'") from error
-    if not ray.is_initialized():
-        ray.init(address=address, log_to_driver=False)
-    task = ray.remote(num_cpus=1, max_retries=retries)(train_remote)
-    pending = {task.remote(config_to_json(run.config)): run for run in runs}
-    for run in runs:
-        summary.progress(run, 0)
-    while pending:
-        ready, _ = ray.wait(list(pending), num_returns=1)
-        run = pending.pop(ready[0])
-        files = ray.get(ready[0])
-        staging = run.folder.with_name(run.folder.name + ".incoming")  # whole folders only
-        if staging.exists():
-            shutil.rmtree(staging)
-        for name, content in files.items():
-            path = staging / name
-            path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_bytes(content)
-        if run.folder.exists():
-            shutil.rmtree(run.folder)
-        staging.rename(run.folder)
-        summary.finish(run)
+    return ray
+
+
+def run_ray(
+    runs: list[GridRun],
+    summary: Summary,
+    address: str | None,
+    retries: int,
+    on_finish: Callable[[GridRun], None] | None = None,
+) -> None:
+    """Train ``runs`` as Ray tasks (see the module docstring), writing each run's files into its
+    folder as its task ends; ``on_finish(run)`` follows each run that finished.
+
+    :class:`UserError` if a run's folder is being written by another process (before anything
+    is sent) or a task fails with one; :class:`~roverswarm.errors.RunStopped` after a signal or
+    a run that stopped on its own, once every task has ended."""
+    with contextlib.ExitStack() as locks:
+        for run in runs:  # every folder first: a run already being written sends nothing
+            try:
+                locks.enter_context(folder_lock(run.folder))
+            except UserError as error:
+                raise UserError(f"run '{run.name}': {error}") from None
+        ray = _ray()
+        if not ray.is_initialized():
+            ray.init(address=address, log_to_driver=False)  # sets its own SIGTERM handler: before JobsStop
+        task = ray.remote(num_cpus=1, max_retries=retries)(train_remote)
+        flag = ray.remote(num_cpus=0)(StopFlag).remote()
+        failure: Exception | None = None
+        with JobsStop() as stop:
+            pending = {}
+            try:
+                for run in runs:
+                    files = read_files(run.folder) if status(run) == "partial" else None
+                    pending[task.remote(config_to_json(run.config), files, flag)] = run
+                    summary.progress(run, episodes_done(run))
+                told = False
+                while pending:
+                    if (stop.asked or failure is not None) and not told:
+                        flag.ask.remote()
+                        told = True
+                    for ref in ray.wait(list(pending), num_returns=1, timeout=0.5)[0]:
+                        run = pending.pop(ref)
+                        try:
+                            result = ray.get(ref)
+                        except ray.exceptions.RayError as error:  # failed, or its worker died past its retries
+                            failure = failure or _failure(run, error, retries)
+                            continue
+                        if result is not None:
+                            files, stopped = result
+                            write_files(run.folder, files)
+                            if stopped is None:
+                                summary.finish(run)
+                                if on_finish is not None:
+                                    on_finish(run)
+                            elif not stop.asked:
+                                failure = failure or RunStopped(f"run '{run.name}': {stopped}")
+            finally:  # a task left running (this command failed) stops at its next chunk
+                if pending:
+                    flag.ask.remote()
+    if failure is not None:
+        raise failure
+    if stop.asked:
+        raise RunStopped("interrupted; every running run saved a checkpoint: rerun the same command to resume")
+
+
+def _failure(run: GridRun, error: Exception, retries: int) -> Exception:
+    """The one-line error of ``run``'s task: its own :class:`UserError` or
+    :class:`RunStopped`, another error's first line, or a worker lost more often than retried."""
+    cause = getattr(error, "cause", None)
+    if isinstance(cause, (UserError, RunStopped)):
+        return type(cause)(f"run '{run.name}': {cause}")
+    if cause is not None:
+        first = (str(cause).strip().splitlines() or [""])[0]
+        return RunStopped(f"run '{run.name}': its task failed ({type(cause).__name__}: {first})")
+    return RunStopped(
+        f"run '{run.name}': its worker was lost {retries + 1} times ({type(error).__name__}); "
+        "rerun the same command to resume"
+    )

@@ -1,5 +1,6 @@
-"""Stopping jobs that train side by side (``reproduce --jobs``, ``sweep --jobs``) on Ctrl-C or
-SIGTERM, without a traceback and without leaving a lock behind.
+"""Stopping jobs that train side by side (``reproduce`` and ``sweep`` with ``--jobs``, or their
+Ray tasks: :mod:`~roverswarm.experiments.remote`) on Ctrl-C or SIGTERM, without a traceback
+and without leaving a lock behind.
 
 The first signal asks every running job to stop at its next chunk (each saves a checkpoint),
 and no new job starts; further signals are ignored until the jobs have stopped, so the

@@ -15,7 +15,8 @@ with underscores)::
       mappo: {preset: mappo}      # a setting may start from another preset
 
 Every (scenario, setting) trains in ``OUT/runs/<scenario>/<setting>`` (seeds vmapped; a
-finished run is kept, an interrupted one resumes), then every seed's policy is evaluated
+finished run is kept, an interrupted one resumes; here, in processes side by side, or as Ray
+tasks: :class:`~roverswarm.experiments.arms.Backend`), then every seed's policy is evaluated
 deterministically on the same 1000 episodes as the random and oracle policies
 (:func:`roverswarm.evaluate.evaluate_run`, kept in the run folder as ``evaluation.csv``).
 ``OUT/sweep.csv`` and ``OUT/sweep.md`` get one row per run: every seed's normalised score,
@@ -41,9 +42,10 @@ from rich.live import Live
 
 from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
-from roverswarm.experiments.arms import GridRun, check_jobs, status
+from roverswarm.experiments.arms import Backend, GridRun, check_backend, status
 from roverswarm.experiments.live import Summary
 from roverswarm.experiments.pool import default_jobs, train_runs
+from roverswarm.experiments.remote import run_ray
 from roverswarm.config import PRESETS, validate, with_options
 from roverswarm.limits import check_memory, open_limited, read_limited, safe_name, training_parts
 from roverswarm.runs import METRICS, atomic_write, folder_lock, markdown_table, read_metrics, write_csv
@@ -52,8 +54,10 @@ EVALUATION = "evaluation.csv"
 
 
 @dataclass(frozen=True)
-class SweepConfig:
-    """A sweep file and where its runs and table go."""
+class SweepConfig(Backend):
+    """A sweep file, where its runs and table go, and where its runs train (--backend, as
+    `reproduce`'s: the table grows after each group of --jobs, or in the file's order as Ray
+    tasks come back)."""
 
     file: tyro.conf.Positional[Path]
     """Sweep file (YAML): preset, scenarios, seeds, episodes and named settings (docs/training.md#sweeps)."""
@@ -61,11 +65,6 @@ class SweepConfig:
     """Output folder: runs/, sweep.csv and sweep.md."""
     eval_episodes: int = 1000
     """Deterministic evaluation episodes per policy (the same layouts for every policy)."""
-    jobs: int | None = None
-    """Runs trained side by side, each in its own process on its share of the CPUs, in the
-    file's order, the table growing after each group (as `reproduce --jobs`). Default: one at
-    a time for runs under 5000 episodes, else as many as the CPUs, the memory the runs need
-    and the runs left allow; 1 trains them one after another in this process."""
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
@@ -162,15 +161,17 @@ def load_sweep(path: Path, out: Path) -> list[GridRun]:
 
 def evaluation(run: GridRun, episodes: int) -> list[dict[str, object]]:
     """The deterministic evaluation rows of ``run`` (random, oracle, every seed), computed once
-    and kept in the run folder."""
+    and kept in the run folder: again for other evaluation episodes or once the run has been
+    trained further (extended: ``train --resume RUN --episodes M``)."""
     from roverswarm.evaluate import evaluate_run
 
     path = run.folder / EVALUATION
+    key = {"episodes": episodes, "trained_episodes": run.config.episodes}
     if path.exists():
         rows = read_table(path)
-        if int(rows[0].get("episodes", -1)) == episodes:
+        if all(rows[0].get(k) == v for k, v in key.items()):
             return rows
-    rows = [{**row, "episodes": episodes} for row in evaluate_run(run.folder, episodes)]
+    rows = [{**row, **key} for row in evaluate_run(run.folder, episodes)]
     write_csv(path, rows)
     return rows
 
@@ -271,28 +272,44 @@ def markdown(rows: list[dict[str, object]]) -> str:
 
 def sweep(config: SweepConfig, live: bool = True) -> Path:
     """Train and evaluate every run of the sweep file; write ``sweep.csv`` and ``sweep.md``
-    after each run (with ``jobs``, each group of runs trained side by side), so a long sweep
-    shows its results as they come. Returns ``sweep.md``."""
+    after each run, in the file's order (locally, each group of ``jobs`` runs trained side by
+    side; on Ray, as the tasks come back), so a long sweep shows its results as they come.
+    Returns ``sweep.md``."""
     require(config.eval_episodes >= 1, f"--eval-episodes must be >= 1, got {config.eval_episodes}")
-    check_jobs(config.jobs)
+    check_backend(config)
     runs = load_sweep(config.file, config.out)
     done = {run.name for run in runs if status(run) == "done"}
     todo = [run for run in runs if run.name not in done]
-    jobs = config.jobs or default_jobs(todo)
     summary = Summary(runs, done)
     table: list[dict[str, object]] = []
     config.out.mkdir(parents=True, exist_ok=True)
 
-    def execute() -> None:
-        for run in runs:
-            if todo and todo[0] == run:  # it and the next runs left, up to one per job, side by side
-                group = todo[:jobs]
-                train_runs(group, summary, len(group))
-                del todo[: len(group)]
+    def tabulate(finished: set[str]) -> None:  # the runs after the table's last, while finished
+        for run in runs[len(table) :]:
+            if run.name not in finished:
+                return
             table.append(table_row(run, evaluation(run, config.eval_episodes)))
             write_csv(config.out / "sweep.csv", table)
             atomic_write(config.out / "sweep.md", lambda f: f.write(markdown(table)))
             figure(table, config.out / "sweep.png")
+
+    def execute() -> None:
+        finished = set(done)
+        tabulate(finished)
+        if config.backend == "ray":
+
+            def finish(run: GridRun) -> None:
+                finished.add(run.name)
+                tabulate(finished)
+
+            run_ray(todo, summary, config.address, config.retries, finish)
+            return
+        jobs = config.jobs or default_jobs(todo)
+        for start in range(0, len(todo), jobs):  # each group side by side, in the file's order
+            group = todo[start : start + jobs]
+            train_runs(group, summary, len(group))
+            finished.update(run.name for run in group)
+            tabulate(finished)
 
     with folder_lock(config.out):  # one writer at a time
         if live:

@@ -94,6 +94,9 @@ class Family:
     """The learner's options (``config.learner``) -> its per-update metrics in ``metrics.csv``."""
     replay: bool
     """Whether the family learns from a replay (its runner carries one)."""
+    replay_buffer: Callable[[Program, EnvParams], Any]
+    """(program, params) -> the replay's :class:`~roverswarm.buffers.base.Buffer` (None
+    without a replay): what a resumed run's checkpoint is loaded into."""
     replay_bytes: Callable[[Any, EnvParams], tuple[int, int, int]]
     """(config, params) -> (bytes, transitions, bytes per transition) of every seed's replay."""
     options: frozenset[str]

@@ -319,10 +319,12 @@ def iteration(config: OffPolicyConfig, params: EnvParams, buffer: Buffer, total:
         shapes = jax.eval_shape(do_updates, learner, buffer_state, key)[2]
         return learner, buffer_state, jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes), jnp.zeros(())
 
-    # the warm-up gate is the same for every seed, so this stays a real branch under the seed vmap
-    learner, buffer_state, info, updated = jax.lax.cond(
-        transitions_seen >= config.warmup, do_updates, skip, learner, buffer_state, keys[:, 1]
-    )
+    # the warm-up gate is the same for every seed, so this stays a real branch under the seed
+    # vmap. The replay's own count follows from the transitions seen, but for a finished run
+    # extended (its final checkpoint keeps no replay): its replay warms up again
+    stored = jnp.min(buffer_state.size)
+    warm = (transitions_seen >= config.warmup) & (stored >= min(config.warmup, config.buffer.buffer_size))
+    learner, buffer_state, info, updated = jax.lax.cond(warm, do_updates, skip, learner, buffer_state, keys[:, 1])
     updates = runner.updates + updated.astype(jnp.int32) * num_updates
     due = config.buffer.refresh_due(runner.updates, updates)  # shared by all seeds
     buffer_state = jax.vmap(buffer.refresh, in_axes=(0, None))(buffer_state, due)
@@ -370,6 +372,7 @@ FAMILY = Family(
     weights=lambda state: (state.actor, state.obs_norm),
     metric_names=metric_names,
     replay=True,
+    replay_buffer=_buffer,
     replay_bytes=replay_bytes,
     options=frozenset(
         [f.name for f in dataclasses.fields(AlgoConfig)]

@@ -311,6 +311,7 @@ FAMILY = Family(
     weights=lambda state: (state.actor, None),  # no observation normaliser
     metric_names=lambda learner: PPO_METRICS,
     replay=False,
+    replay_buffer=lambda program, params: None,
     replay_bytes=no_replay,
     options=frozenset(PPO_USES + tuple(f.name for f in dataclasses.fields(PPOConfig))),
     misfit="--algo {algo} learns on-policy (start from --preset {algo})",
