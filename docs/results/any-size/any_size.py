@@ -3,8 +3,8 @@
     python docs/results/any-size/any_size.py --run runs/anysize              # train (or resume), then evaluate
     python docs/results/any-size/any_size.py --run runs/anysize --evaluate   # evaluate the run as it stands
 
-Trains ``roverswarm train --preset anysize --seeds 5`` (MAPPO with entity networks on
-paper-2..10, a size drawn per episode) into ``--run`` (resumed if it is there; Ctrl-C saves),
+Trains ``roverswarm train --preset anysize --seeds 5`` (MAPPO over each rover's nearest
+entities on paper-2..10, a size drawn per episode) into ``--run`` (resumed if it is there; Ctrl-C saves),
 then evaluates every seed's deterministic policy at N = 2..10 (the sizes it trained on) and at
 12, 16, 20 and 32 (sizes it never saw), 1000 episodes per policy on the same layouts, beside
 random and the oracle. Writes ``any-size.csv`` / ``.md`` (the sweep tables' columns: every seed's
@@ -32,6 +32,8 @@ HERE = Path(__file__).resolve().parent
 SIZES = (2, 3, 4, 5, 6, 7, 8, 9, 10, 12, 16, 20, 32)
 BASELINES = {"swarm (60k)", "swarm-ddpg (60k)", "mappo (40k)"}
 """The best per-size rows of today (one network per size), from the scale sweeps."""
+FIRST = HERE / "any-size-v1.csv"
+"""The first anysize run's rows (20,000 episodes, no POI lead, no curriculum), kept beside the new."""
 
 
 def trained(run: Path) -> tuple[int, float]:
@@ -88,6 +90,7 @@ def main() -> None:
     write_csv(args.out.with_suffix(".csv"), rows)
     atomic_write(args.out.with_suffix(".md"), lambda f: f.write(markdown(rows)))
     baselines = [r for r in read_table(HERE.parent / "swarm" / "score-vs-n.csv") if r["setting"] in BASELINES]
+    baselines += read_table(FIRST)
     figure(rows + baselines, args.out.with_suffix(".png"))
     print(markdown(rows))
 
