@@ -71,7 +71,7 @@ def permute_world(world: dict, rovers: np.ndarray, pois: np.ndarray, traps: np.n
 
 
 def entity_view(world: dict, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """own [N, 4], tokens [N, M, 9], mask [N, M] of ``world``, written from the definition;
+    """own [N, 4], tokens [N, M, 10], mask [N, M] of ``world``, written from the definition;
     every padded slot (an inactive entity's token, an inactive rover's own row) is garbage."""
     n, p, t = len(world["rover_pos"]), len(world["poi_pos"]), len(world["trap_pos"])
     own = np.zeros((n, OWN_FEATURES), np.float32)
@@ -85,13 +85,16 @@ def entity_view(world: dict, rng: np.random.Generator) -> tuple[np.ndarray, np.n
         for j in range(n):
             if j != i:
                 rel = [*(world["rover_pos"][j] - pos), *(world["rover_vel"][j] - vel)]
-                rows.append((rel + [1, 0, 0, RADII["rover"], world["failed"][j]], world["rover_on"][j]))
+                rows.append((rel + [1, 0, 0, RADII["rover"], world["failed"][j], 0], world["rover_on"][j]))
         for j in range(p):
             rel = [*(world["poi_pos"][j] - pos), 0, 0]
-            rows.append((rel + [0, 1, 0, RADII["poi"], world["observed"][j]], world["poi_on"][j]))
+            gap = lambda k: np.linalg.norm(world["rover_pos"][k] - world["poi_pos"][j])  # noqa: E731
+            others = [gap(k) for k in range(n) if k != i and world["rover_on"][k]]
+            lead = np.clip(min(others, default=np.inf) - gap(i), -2, 2)  # the nearest other rover's distance less mine
+            rows.append((rel + [0, 1, 0, RADII["poi"], world["observed"][j], lead], world["poi_on"][j]))
         for j in range(t):
             rel = [*(world["trap_pos"][j] - pos), 0, 0]
-            rows.append((rel + [0, 0, 1, RADII["trap"], 0], world["trap_on"][j]))
+            rows.append((rel + [0, 0, 1, RADII["trap"], 0, 0], world["trap_on"][j]))
         for k, (features, on) in enumerate(rows):
             tokens[i, k] = features if on else garbage(TOKEN_FEATURES)
             mask[i, k] = on
@@ -99,7 +102,7 @@ def entity_view(world: dict, rng: np.random.Generator) -> tuple[np.ndarray, np.n
 
 
 def stack_views(worlds: list[dict], rng: np.random.Generator) -> tuple[np.ndarray, ...]:
-    """own [B, N, 4], tokens [B, N, M, 9], mask [B, N, M] of equally laid out worlds."""
+    """own [B, N, 4], tokens [B, N, M, 10], mask [B, N, M] of equally laid out worlds."""
     return tuple(np.stack(parts) for parts in zip(*(entity_view(w, rng) for w in worlds)))
 
 
@@ -312,7 +315,7 @@ def test_same_parameters_for_every_swarm_size(apply, n):
 def test_parameter_shapes_do_not_depend_on_the_view(params):
     """Initialised on 29 tokens of a [3, 10] batch, the actor has the shapes of the default init."""
     actor = EntityActor(CONFIG.dim, CONFIG.heads, CONFIG.layers, CONFIG.layer_norm, CONFIG.hidden)
-    view = (jnp.zeros((3, 10, 4)), jnp.zeros((3, 10, 29, 9)), jnp.ones((3, 10, 29), bool))
+    view = (jnp.zeros((3, 10, 4)), jnp.zeros((3, 10, 29, TOKEN_FEATURES)), jnp.ones((3, 10, 29), bool))
     big = jax.eval_shape(actor.init, jax.random.PRNGKey(1), *view)
     assert jax.tree.map(jnp.shape, big) == jax.tree.map(jnp.shape, params["actor"])
 

@@ -131,14 +131,16 @@ IPPO = dataclasses.replace(MAPPO, learner=dataclasses.replace(MAPPO.learner, alg
 ANYSIZE = dataclasses.replace(
     MAPPO,
     scenario="paper-2..10",
-    episodes=20_000,
+    episodes=60_000,
+    size_curriculum=15_000,
     learner=dataclasses.replace(MAPPO.learner, network="nearest", entity_nearest=4),
 )
 """One policy for every swarm size: MAPPO whose actor and value see each rover's 4 nearest
-other rovers, POIs and traps (nearest first, no rover ids), trained on swarms of 2 to 10
-rovers, a size drawn per episode (``docs/results/any-size/``). Attention over the entities
-(``--network entity``) is the other encoder; one update cost 13 to 43 times as much here
-(docs/results/any-size/README.md), too slow for a 5-seed run in one session so far."""
+other rovers, POIs and traps (nearest first, no rover ids; a POI's token carries the rover's
+lead on it), trained on swarms of 2 to 10 rovers, a size drawn per episode, the largest size
+drawn growing from 2 to 10 over the first 15,000 episodes (``docs/results/any-size/``).
+Attention over the entities (``--network entity``) is the other encoder; one update cost 13
+to 43 times as much here (docs/results/any-size/README.md), too slow for a 5-seed run so far."""
 
 PRESETS: dict[str, TrainConfig] = {
     "default": TrainConfig(),

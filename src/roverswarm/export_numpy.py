@@ -14,10 +14,11 @@ in the map's frame (x, y), as the environment's.
   rover (index order, skipping itself), or, with ``nearest_first``, each of those three
   groups ordered nearest first.
 * Entity view (:func:`observe_entities`): ``own`` [N, 4] (velocity, position), ``tokens``
-  [N, M, 9] with M = (N - 1) + P + T, one per other rover, POI and trap in that order, each
-  ``[dx, dy, dvx, dvy, is_rover, is_poi, is_trap, radius, flag]`` relative to the rover (flag:
-  a rover has failed, a POI has been observed this episode), and ``mask`` [N, M] bool (every
-  token here is a real entity). :func:`nearest_entities` cuts it to the K nearest of each type.
+  [N, M, 10] with M = (N - 1) + P + T, one per other rover, POI and trap in that order, each
+  ``[dx, dy, dvx, dvy, is_rover, is_poi, is_trap, radius, flag, lead]`` relative to the rover
+  (flag: a rover has failed, a POI has been observed this episode; lead, of a POI: the nearest
+  other rover's distance to it less this rover's, clipped to +-2), and ``mask`` [N, M] bool
+  (every token here is a real entity). :func:`nearest_entities` cuts it to the K nearest of each type.
 
 Only swarms whose every rover, POI and trap exists are described here (no padded slots):
 give the arrays of what is there.
@@ -29,7 +30,7 @@ import numpy as np
 
 OWN_FEATURES = ("vx", "vy", "x", "y")
 """The own features of the entity view, in order."""
-TOKEN_FEATURES = ("dx", "dy", "dvx", "dvy", "is_rover", "is_poi", "is_trap", "radius", "flag")
+TOKEN_FEATURES = ("dx", "dy", "dvx", "dvy", "is_rover", "is_poi", "is_trap", "radius", "flag", "lead")
 """The features of one entity token, in order."""
 
 
@@ -58,9 +59,21 @@ def observe_flat(rover_pos, rover_vel, poi_pos, trap_pos, nearest_first: bool = 
     return np.concatenate([vel, pos, *(g.reshape(n, 2 * g.shape[1]) for g in groups)], axis=-1)
 
 
-def _tokens(rel_pos: np.ndarray, rel_vel, kind: int, radius, flag) -> np.ndarray:
-    """[N, K, 9] tokens of one type from positions [N, K, 2] and velocities (None: they never
-    move) relative to the rover, the type (0 rover, 1 POI, 2 trap), radius and flag."""
+LEAD_CAP = 2.0
+"""A POI's lead is clipped to [-LEAD_CAP, LEAD_CAP]."""
+
+
+def poi_leads(rover_pos: np.ndarray, poi_pos: np.ndarray) -> np.ndarray:
+    """[N, P] the nearest other rover's distance to each POI less the rover's own, clipped to
+    +-:data:`LEAD_CAP` (+LEAD_CAP for a rover alone)."""
+    dist = np.sqrt(np.sum(np.square(rover_pos[:, None] - poi_pos[None]), axis=-1))
+    others = np.where(np.eye(len(rover_pos), dtype=bool)[:, :, None], np.inf, dist[None])
+    return np.clip(np.min(others, axis=1, initial=np.inf) - dist, -LEAD_CAP, LEAD_CAP).astype(np.float32)
+
+
+def _tokens(rel_pos: np.ndarray, rel_vel, kind: int, radius, flag, lead=0.0) -> np.ndarray:
+    """[N, K, 10] tokens of one type from positions [N, K, 2] and velocities (None: they never
+    move) relative to the rover, the type (0 rover, 1 POI, 2 trap), radius, flag and lead."""
     tokens = np.zeros((*rel_pos.shape[:2], len(TOKEN_FEATURES)), np.float32)
     tokens[..., 0:2] = rel_pos
     if rel_vel is not None:
@@ -68,6 +81,7 @@ def _tokens(rel_pos: np.ndarray, rel_vel, kind: int, radius, flag) -> np.ndarray
     tokens[..., 4 + kind] = 1.0
     tokens[..., 7] = radius
     tokens[..., 8] = flag
+    tokens[..., 9] = lead
     return tokens
 
 
@@ -82,7 +96,7 @@ def observe_entities(
     observe_radius=0.1,
     trap_radius=0.1,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The entity view (own [N, 4], tokens [N, M, 9], mask [N, M] bool). ``observed`` [P]
+    """The entity view (own [N, 4], tokens [N, M, 10], mask [N, M] bool). ``observed`` [P]
     bool: POIs observed so far this episode; ``failed`` [N] bool: rovers that have failed
     (default: none of either). ``observe_radius`` is a scalar or one per POI [P],
     ``trap_radius`` a scalar or one per trap [T]: the environment's, see ``policy.json``."""
@@ -94,7 +108,7 @@ def observe_entities(
     tokens = np.concatenate(
         [
             _tokens(pos[others] - pos[:, None], vel[others] - vel[:, None], 0, rover_radius, failed[others]),
-            _tokens(pois[None] - pos[:, None], None, 1, _f32(observe_radius), observed),
+            _tokens(pois[None] - pos[:, None], None, 1, _f32(observe_radius), observed, poi_leads(pos, pois)),
             _tokens(traps[None] - pos[:, None], None, 2, _f32(trap_radius), 0.0),
         ],
         axis=1,
@@ -105,7 +119,7 @@ def observe_entities(
 def nearest_entities(own, tokens, mask, k: int, counts: tuple[int, int, int]):
     """An entity view cut to the ``k`` nearest real tokens of each type (other rovers, POIs,
     traps, whose numbers in ``tokens`` are ``counts``), nearest first within a type, then
-    empty tokens (zeros, masked out) where a type has fewer than ``k``: tokens [N, 3k, 9]."""
+    empty tokens (zeros, masked out) where a type has fewer than ``k``: tokens [N, 3k, 10]."""
     cut_tokens, cut_mask, start = [], [], 0
     for count in counts:
         group, exists = tokens[:, start : start + count], mask[:, start : start + count]

@@ -3,14 +3,16 @@
     python docs/results/any-size/any_size.py --run runs/anysize              # train (or resume), then evaluate
     python docs/results/any-size/any_size.py --run runs/anysize --evaluate   # evaluate the run as it stands
 
-Trains ``roverswarm train --preset anysize --seeds 5`` (MAPPO with entity networks on
-paper-2..10, a size drawn per episode) into ``--run`` (resumed if it is there; Ctrl-C saves),
+Trains ``roverswarm train --preset anysize --seeds 5`` (MAPPO over each rover's nearest
+entities on paper-2..10, a size drawn per episode) into ``--run`` (resumed if it is there; Ctrl-C saves),
 then evaluates every seed's deterministic policy at N = 2..10 (the sizes it trained on) and at
 12, 16, 20 and 32 (sizes it never saw), 1000 episodes per policy on the same layouts, beside
 random and the oracle. Writes ``any-size.csv`` / ``.md`` (the sweep tables' columns: every seed's
 score, the means of POIs observed, collisions and trap contacts, the oracle's trap contacts)
 and ``any-size.png``: the score against N beside the best per-size rows of the scale sweeps
-(``docs/results/swarm/score-vs-n.csv``).
+(``docs/results/swarm/score-vs-n.csv``) and the first anysize run (``any-size-v1.csv``).
+Last, ``mission stress`` of ``examples/mission.yaml`` for every seed, with and without one
+random rover failure, beside the oracle: ``any-size-stress.csv``.
 """
 
 from __future__ import annotations
@@ -32,6 +34,8 @@ HERE = Path(__file__).resolve().parent
 SIZES = (2, 3, 4, 5, 6, 7, 8, 9, 10, 12, 16, 20, 32)
 BASELINES = {"swarm (60k)", "swarm-ddpg (60k)", "mappo (40k)"}
 """The best per-size rows of today (one network per size), from the scale sweeps."""
+FIRST = HERE / "any-size-v1.csv"
+"""The first anysize run's rows (20,000 episodes, no POI lead, no curriculum), kept beside the new."""
 
 
 def trained(run: Path) -> tuple[int, float]:
@@ -71,6 +75,19 @@ def table(run: Path, episodes: int) -> list[dict[str, object]]:
     return rows
 
 
+def stress(run: Path, seeds: int, episodes: int) -> list[dict[str, object]]:
+    """``mission stress`` of the example mission for every seed's policy (and the oracle once):
+    success, POIs observed and contacts without and with one random rover failure."""
+    from roverswarm.mission import stress_mission
+
+    rows = []
+    for seed in range(seeds):
+        out = run / "stress" / f"seed-{seed}"
+        found = stress_mission(HERE.parents[2] / "examples" / "mission.yaml", str(run), out, episodes, policy_seed=seed)
+        rows += [r for r in found if r["policy"] != "oracle"]  # named by their seed
+    return rows + [r for r in found if r["policy"] == "oracle"]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run", type=Path, required=True, help="the training run's folder")
@@ -78,6 +95,7 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--eval-episodes", type=int, default=1000)
     parser.add_argument("--evaluate", action="store_true", help="evaluate the run as it stands, train nothing")
+    parser.add_argument("--stress-episodes", type=int, default=500, help="mission stress episodes per seed")
     parser.add_argument("--out", type=Path, default=HERE / "any-size", help="output path without suffix")
     args = parser.parse_args()
     enable_compilation_cache()
@@ -88,8 +106,13 @@ def main() -> None:
     write_csv(args.out.with_suffix(".csv"), rows)
     atomic_write(args.out.with_suffix(".md"), lambda f: f.write(markdown(rows)))
     baselines = [r for r in read_table(HERE.parent / "swarm" / "score-vs-n.csv") if r["setting"] in BASELINES]
+    baselines += read_table(FIRST)
     figure(rows + baselines, args.out.with_suffix(".png"))
     print(markdown(rows))
+    stressed = stress(args.run, args.seeds, args.stress_episodes)
+    write_csv(args.out.with_name(args.out.name + "-stress.csv"), stressed)
+    for row in stressed:
+        print(row["policy"], row["condition"], f"success {row['success']:.2f}", f"POIs {row['pois_observed']:.2f}")
 
 
 if __name__ == "__main__":

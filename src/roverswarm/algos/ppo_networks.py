@@ -33,7 +33,7 @@ import jax.numpy as jnp
 
 from roverswarm.algos.entity import EntityConfig, make_entity_networks
 from roverswarm.algos.learner import AlgoConfig
-from roverswarm.env.entities import nearest_entities, observe_entities
+from roverswarm.env.entities import OWN_FEATURES, TOKEN_FEATURES, nearest_entities, observe_entities
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, EnvState, observe
 
 
@@ -194,7 +194,7 @@ def _nearest_kind(learner: AlgoConfig, config: Any) -> PolicyNetworks:
 
     def init(key, num_rovers, obs_size):
         k_actor, k_critic = jax.random.split(key)
-        x = jnp.zeros((4 + 3 * k * 10,))
+        x = jnp.zeros((OWN_FEATURES + 3 * k * (TOKEN_FEATURES + 1),))
         return actor_net.init(k_actor, x), critic_net.init(k_critic, x)
 
     return PolicyNetworks(

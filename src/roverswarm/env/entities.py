@@ -8,20 +8,23 @@ Shape legend
 Per rover i (pure JAX, jittable, vmappable; leading batch axes come only from vmap):
 
 * ``own`` [N, 4]: its velocity and position (the flat view's first four numbers);
-* ``tokens`` [N, M, 9], one per other entity, ``[dx, dy, dvx, dvy, is_rover, is_poi, is_trap,
-  radius, flag]``: position and velocity relative to rover i (velocity 0 for POIs and traps,
-  which never move), the type as a one-hot, the entity's radius (a rover's body, a POI's
-  observation radius, a trap's radius) and a flag (a rover: it has failed; a POI: it has been
-  observed this episode; a trap: 0). Other rovers in index order skipping i, then POIs, traps;
+* ``tokens`` [N, M, 10], one per other entity, ``[dx, dy, dvx, dvy, is_rover, is_poi, is_trap,
+  radius, flag, lead]``: position and velocity relative to rover i (velocity 0 for POIs and
+  traps, which never move), the type as a one-hot, the entity's radius (a rover's body, a POI's
+  observation radius, a trap's radius), a flag (a rover: it has failed; a POI: it has been
+  observed this episode; a trap: 0) and, for a POI, rover i's lead on it (:func:`poi_leads`:
+  how much nearer rover i is than every other rover, negative if another is nearer; 0 for
+  rovers and traps). Other rovers in index order skipping i, then POIs, traps;
 * ``mask`` [N, M] bool: the token is an entity that exists. In an unpadded layout every token
   exists; in a padded one the slots past the active counts do not (their features are zeros),
   and the rows of rovers that do not exist are all False.
 
 It holds everything the flat view does (the flat view is its positions, relative to the rover,
 in the same order; nearest first is a sort of each type by distance) and more: the others'
-velocities, who has failed and which POIs are done. Read as a set, it is the same under any
-permutation of the layout's POIs, traps and other rovers, and it has no rover index, so a
-network over it (:mod:`roverswarm.algos.entity`) serves any swarm size.
+velocities, who has failed, which POIs are done and which POIs each rover is nearest to (the
+lead, which a rover could otherwise work out only from every other rover's position, beyond
+what a nearest-K view keeps). Read as a set, it is the same under any permutation of the
+layout's POIs, traps and other rovers, and it has no rover index, so a network over it (:mod:`roverswarm.algos.entity`) serves any swarm size.
 """
 
 from __future__ import annotations
@@ -34,10 +37,14 @@ from roverswarm.env.mars import EnvParams, EnvState, masks_of, observe_radii, ot
 
 OWN_FEATURES = 4
 """Own velocity (2) and position (2)."""
-TOKEN_FEATURES = 9
-"""Relative position (2), relative velocity (2), type one-hot (3), radius, flag."""
+TOKEN_FEATURES = 10
+"""Relative position (2), relative velocity (2), type one-hot (3), radius, flag, lead."""
+LEAD_CAP = 2.0
+"""A POI's lead is clipped to [-LEAD_CAP, LEAD_CAP] (the default map's diagonal is 2.8)."""
 ROVER, POI, TRAP = 0, 1, 2
 """Positions of the type one-hot in a token's features (after the first four)."""
+FLAG, LEAD = 8, 9
+"""Positions of the flag and of the lead in a token's features."""
 
 
 @struct.dataclass
@@ -54,10 +61,25 @@ def token_count(params: EnvParams) -> int:
     return params.num_rovers - 1 + params.num_pois + params.num_traps
 
 
-def _tokens(rel_pos: jax.Array, rel_vel: jax.Array, kind: int, radius: jax.Array, flag: jax.Array) -> jax.Array:
-    """[N, K, 2], [N, K, 2], a type, [N, K] radius and flag -> [N, K, TOKEN_FEATURES]."""
+def _tokens(
+    rel_pos: jax.Array, rel_vel: jax.Array, kind: int, radius: jax.Array, flag: jax.Array, lead: jax.Array | None = None
+) -> jax.Array:
+    """[N, K, 2], [N, K, 2], a type, [N, K] radius, flag and lead (None: 0) -> [N, K, TOKEN_FEATURES]."""
     one_hot = jnp.broadcast_to(jax.nn.one_hot(kind, 3, dtype=rel_pos.dtype), (*rel_pos.shape[:2], 3))
-    return jnp.concatenate([rel_pos, rel_vel, one_hot, radius[..., None], flag[..., None]], axis=-1)
+    lead = jnp.zeros_like(flag) if lead is None else lead
+    return jnp.concatenate([rel_pos, rel_vel, one_hot, radius[..., None], flag[..., None], lead[..., None]], axis=-1)
+
+
+def poi_leads(rover_pos: jax.Array, poi_pos: jax.Array, rovers: jax.Array | None = None) -> jax.Array:
+    """[N, P] each rover's lead on each POI: the nearest *other* rover's distance to the POI
+    less its own, clipped to +-:data:`LEAD_CAP`. Positive: no other rover is closer (the POI
+    is this rover's to take); negative: another rover is that much closer. ``rovers`` [N]
+    bool: the rovers that exist (the others are never nearest; a rover with no other gets
+    +:data:`LEAD_CAP`)."""
+    dist = jnp.sqrt(jnp.sum(jnp.square(rover_pos[:, None] - poi_pos[None]), axis=-1))  # [N, P]
+    present = dist if rovers is None else jnp.where(rovers[:, None], dist, jnp.inf)
+    others = jnp.where(jnp.eye(rover_pos.shape[0], dtype=bool)[:, :, None], jnp.inf, present[None])  # [N, N, P]
+    return jnp.clip(jnp.min(others, axis=1) - dist, -LEAD_CAP, LEAD_CAP)
 
 
 def observe_entities(state: EnvState, params: EnvParams) -> EntityView:
@@ -74,12 +96,14 @@ def observe_entities(state: EnvState, params: EnvParams) -> EntityView:
         failed[others],
     )
     zero_vel = jnp.zeros((n, 1, 2), pos.dtype)
+    masks = masks_of(state)
     pois = _tokens(
         state.poi_pos[None] - pos[:, None],
         jnp.broadcast_to(zero_vel, (n, p, 2)),
         POI,
         jnp.broadcast_to(observe_radii(params), (n, p)),
         jnp.broadcast_to(state.observed.astype(pos.dtype), (n, p)),
+        poi_leads(pos, state.poi_pos, None if masks is None else masks.rovers),
     )
     traps = _tokens(
         state.trap_pos[None] - pos[:, None],
@@ -90,7 +114,6 @@ def observe_entities(state: EnvState, params: EnvParams) -> EntityView:
     )
     tokens = jnp.concatenate([rovers, pois, traps], axis=1)
     own = jnp.concatenate([vel, pos], axis=-1)
-    masks = masks_of(state)
     if masks is None:
         return EntityView(own=own, tokens=tokens, mask=jnp.ones(tokens.shape[:2], bool))
     exists = jnp.concatenate(
