@@ -12,7 +12,7 @@ them alike and their ratios hold. Four tables (``--only`` prints one):
   roverswarm's main column resets every environment at the start of an episode and scans 25
   steps of ``step_env`` (the training loop's structure); the second scans the auto-resetting
   ``step``. Ratio: roverswarm over mpe2, target at least 100 at E = 1024. mpe2 has no traps.
-* ``peers``: E = 1024, N = 3, 5, 8, 10, 16, 32, four columns: reset per episode + ``step_env``;
+* ``peers``: E = 1024, N = 2, 3, 5, 8, 10, 16, 32, four columns: reset per episode + ``step_env``;
   ``step`` (auto-reset) with every episode ending at the same step; ``step`` with staggered
   episodes (each environment starts at a random time in [0, 25), so about E / 25 episodes end at
   every step); and JaxMARL 0.2.0's ``MPE_simple_spread_v3`` (N agents, N landmarks, continuous
@@ -58,7 +58,7 @@ except ImportError:  # an optional peer: its column is left out
     jaxmarl = None
 
 ROVER_COUNTS = (3, 5)
-PEER_COUNTS = (3, 5, 8, 10, 16, 32)
+PEER_COUNTS = (2, 3, 5, 8, 10, 16, 32)
 SAMPLER_COUNTS = (2, 3, 4, 5, 8, 10, 16, 24, 32)
 ANY_SIZE_COUNTS = (10, 16, 32)
 ANY_SIZE_TARGET = 1.5

@@ -64,7 +64,10 @@ def first_of(candidates: jax.Array, ok: jax.Array) -> jax.Array:
 def place_in_turn(candidates: jax.Array, ok: jax.Array, spacing, exists: jax.Array | None = None) -> jax.Array:
     """[N, C, 2] candidates, [N, C] bool -> [N, 2]: rover i takes its first ``ok`` candidate
     at least ``spacing`` from rovers 0 .. i-1 (those that ``exists`` [N] says exist), its first
-    candidate if none is."""
+    candidate if none is.
+
+    N turns of one rover each. (Rounds of every rover at once until no choice changes give the
+    same layouts, but a crowded zone needs many rounds: 1.8x slower at N = 32.)"""
     n = candidates.shape[0]
     earlier_exists = jnp.ones((n,), bool) if exists is None else exists
 
