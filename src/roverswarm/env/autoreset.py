@@ -19,10 +19,10 @@ paid off only at N = 2 (staggered episodes 1.3x the cost of ``step_env`` instead
 cost more from N = 5 on (1.6x instead of 1.3x), measured in one run. Under nested ``vmap`` the
 outer axis batches the while loop, which then runs as many chunks as the busiest row needs.
 
-The rows that did not end get placeholder values (zeros); the caller selects. No
-array flowing into ``where_done`` carries a gradient in ``step`` (a done flag, keys and
-params), so reverse-mode differentiation through ``step`` with respect to actions still works
-(``custom_vmap`` itself has no reverse-mode rule).
+The rows that did not end get placeholder values (zeros); the caller selects. Reverse-mode
+differentiation through ``step`` with respect to the actions works, as the reset depends on no
+action; with respect to params that the layout reads (``map_size``, radii, fixed positions) it
+does not under ``vmap``: JAX cannot reverse-differentiate a while loop of dynamic length.
 """
 
 from __future__ import annotations
