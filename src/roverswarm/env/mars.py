@@ -33,12 +33,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from roverswarm.env.autoreset import where_done
+from roverswarm.env.layouts import Masks, draw_layout
 from roverswarm.errors import UserError
 
 ACTION_SIZE = 2
-# Candidate positions drawn per trap / rover at reset; the first one that keeps clear of what
-# it must not touch is used (a fixed-size, jittable rejection sampler).
-_LAYOUT_CANDIDATES = 16
 
 
 @struct.dataclass
@@ -126,15 +125,6 @@ def _active(count, size: int) -> jax.Array:
     return jnp.arange(size) < (size if count is None else count)
 
 
-@struct.dataclass
-class Masks:
-    """Which slots of a padded layout exist."""
-
-    rovers: jax.Array  # [N] bool
-    pois: jax.Array  # [P] bool
-    traps: jax.Array  # [T] bool
-
-
 def masks_of(state: EnvState) -> Masks | None:
     """The state's masks, or None for an unpadded layout (every slot exists)."""
     if state.rover_mask is None:
@@ -167,32 +157,10 @@ def coverage_distance(rover_pos: jax.Array, poi_pos: jax.Array, masks: Masks | N
     return jnp.sum(jnp.where(masks.pois, nearest, 0.0))
 
 
-def _first_clear(
-    candidates: jax.Array, obstacles: jax.Array, clearance: jax.Array, exists: jax.Array | None = None
-) -> jax.Array:
-    """[K, C, 2] candidates, [B, 2] obstacles, [B] or [] clearance -> [K, 2].
-
-    For each of K items, the first of its C candidates at least ``clearance`` from every
-    obstacle that ``exists`` ([B] bool; all if None); the first candidate if none is.
-    """
-    dist = jnp.sqrt(jnp.sum(jnp.square(candidates[:, :, None, :] - obstacles), axis=-1))
-    far = dist >= clearance
-    if exists is not None:
-        far = far | ~exists
-    clear = jnp.all(far, axis=-1)  # [K, C]
-    index = jnp.argmax(clear, axis=-1)  # first True, or 0
-    return jnp.take_along_axis(candidates, index[:, None, None], axis=1)[:, 0]
-
-
 def reset(key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
-    """Start an episode: POIs, then traps clear of POIs, then rovers clear of traps.
-
-    Positions are uniform in the map (rovers: in ``start_zone`` if set) unless the params fix
-    them (``fixed_pois``, ``fixed_traps``, ``fixed_starts``: a mission's layout). A drawn trap
-    keeps ``trap_radius + rover_radius`` away from every POI (so a rover sitting on a POI
-    touches no trap) and a drawn rover starts outside every trap (in a ``start_zone``, also
-    clear of the rovers placed before it); each uses the first of 16 uniform candidates that
-    satisfies this. No rover has failed (``fail_step`` is NEVER) unless ``fail_rate`` draws a
+    """Start an episode: POIs, then traps clear of POIs, then rovers clear of traps, drawn
+    with ``key`` by :func:`~roverswarm.env.layouts.draw_layout` (uniform positions, 16
+    candidates per trap and rover, unless the params fix them). No rover has failed (``fail_step`` is NEVER) unless ``fail_rate`` draws a
     failure, from a key of its own (the layout is the same whatever the rate).
 
     Padded params (``active_*``): every slot is drawn, the state carries masks, and only the
@@ -206,32 +174,7 @@ def reset(key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
         masks = Masks(
             _active(params.active_rovers, n), _active(params.active_pois, p), _active(params.active_traps, t)
         )
-    k_poi, k_trap, k_rover = jax.random.split(key, 3)
-    size = params.map_size
-    poi_pos = params.fixed_pois
-    if poi_pos is None:
-        poi_pos = jax.random.uniform(k_poi, (p, 2), minval=-size, maxval=size)
-    trap_radius = trap_radii(params)
-    trap_pos = params.fixed_traps
-    if trap_pos is None:
-        trap_cand = jax.random.uniform(k_trap, (t, _LAYOUT_CANDIDATES, 2), minval=-size, maxval=size)
-        trap_pos = _first_clear(
-            trap_cand, poi_pos, (trap_radius + params.rover_radius)[:, None, None], None if masks is None else masks.pois
-        )
-    rover_pos = params.fixed_starts
-    if rover_pos is None and params.start_zone is None:
-        rover_cand = jax.random.uniform(k_rover, (n, _LAYOUT_CANDIDATES, 2), minval=-size, maxval=size)
-        rover_pos = _first_clear(rover_cand, trap_pos, trap_radius + params.rover_radius, None if masks is None else masks.traps)
-    elif rover_pos is None:  # a release zone is crowded: each rover also keeps clear of those placed before it
-        rover_cand = jax.random.uniform(
-            k_rover, (n, _LAYOUT_CANDIDATES, 2), minval=params.start_zone[0], maxval=params.start_zone[1]
-        )
-        rover_pos = jnp.zeros((0, 2))
-        for i in range(n):
-            clearance = jnp.concatenate([trap_radius + params.rover_radius, jnp.full((i,), 2 * params.rover_radius)])
-            exists = None if masks is None else jnp.concatenate([masks.traps, masks.rovers[:i]])
-            placed = _first_clear(rover_cand[i : i + 1], jnp.concatenate([trap_pos, rover_pos]), clearance, exists)
-            rover_pos = jnp.concatenate([rover_pos, placed])
+    poi_pos, trap_pos, rover_pos = draw_layout(key, params, trap_radii(params), masks)
     fail_step = jnp.full((n,), NEVER, jnp.int32)
     if params.fail_rate is not None:
         active = n if params.active_rovers is None else params.active_rovers
@@ -415,15 +358,15 @@ def step(
     key: jax.Array, state: EnvState, actions: jax.Array, params: EnvParams
 ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, jax.Array, dict[str, Any]]:
     """:func:`step_env` with auto-reset: when the episode ends (terminated or truncated) the
-    returned observation and state are those of a fresh episode drawn with ``key``, and the
-    last observation of the finished episode is kept in ``info["final_obs"]`` [N, O].
+    returned observation and state are those of ``reset(key, params)``, a fresh episode, and
+    the last observation of the finished episode is kept in ``info["final_obs"]`` [N, O].
 
-    The reset is drawn at every step and kept only where an episode ended (under vmap both
-    branches run). When all episodes have the same length, resetting once per episode and
-    scanning :func:`step_env` is several times faster (see ``benchmarks/env_throughput.py``)."""
+    The reset is drawn only where an episode ended, also under ``jax.vmap``
+    (:func:`~roverswarm.env.autoreset.where_done`), so a vmapped ``step`` costs little more
+    than :func:`step_env` (see ``benchmarks/env_throughput.py``)."""
     obs, next_state, rewards, terminated, truncated, info = step_env(state, actions, params)
     done = terminated | truncated
-    reset_obs, reset_state = reset(key, params)
+    reset_obs, reset_state = where_done(done, reset, params.max_steps, key, params)
     next_state = jax.tree.map(lambda r, s: jnp.where(done, r, s), reset_state, next_state)
     info = {**info, "final_obs": obs}
     return jnp.where(done, reset_obs, obs), next_state, rewards, terminated, truncated, info
