@@ -31,6 +31,7 @@ def tiny_anysize():
     return dataclasses.replace(
         with_options(ANYSIZE, {**options, "hidden": (16,), "epochs": 2, "minibatches": 2}),
         scenario="paper-2..4",
+        size_curriculum=0,  # every size from the start (the preset's curriculum starts at 2 rovers)
         episodes=200,
         seeds=2,
         num_envs=4,
