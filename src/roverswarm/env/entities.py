@@ -24,7 +24,8 @@ in the same order; nearest first is a sort of each type by distance) and more: t
 velocities, who has failed, which POIs are done and which POIs each rover is nearest to (the
 lead, which a rover could otherwise work out only from every other rover's position, beyond
 what a nearest-K view keeps). Read as a set, it is the same under any permutation of the
-layout's POIs, traps and other rovers, and it has no rover index, so a network over it (:mod:`roverswarm.algos.entity`) serves any swarm size.
+layout's POIs, traps and other rovers, and it has no rover index, so a network over it
+(:mod:`roverswarm.algos.entity`) serves any swarm size.
 """
 
 from __future__ import annotations
@@ -43,8 +44,8 @@ LEAD_CAP = 2.0
 """A POI's lead is clipped to [-LEAD_CAP, LEAD_CAP] (the default map's diagonal is 2.8)."""
 ROVER, POI, TRAP = 0, 1, 2
 """Positions of the type one-hot in a token's features (after the first four)."""
-FLAG, LEAD = 8, 9
-"""Positions of the flag and of the lead in a token's features."""
+LEAD = 9
+"""Position of the lead in a token's features (the last)."""
 
 
 @struct.dataclass
