@@ -19,6 +19,26 @@ from roverswarm.jaxcache import enable_compilation_cache, release_compiled_progr
 enable_compilation_cache()
 
 
+HEAVIEST_FIRST = (
+    "test_reproduce.py",
+    "test_train.py",
+    "test_maddpg_update.py",
+    "test_anysize.py",
+    "test_ensembles.py",
+    "test_sweep.py",
+)
+"""Test modules by their CPU time from an empty cache (most first; the rest keep their order).
+Each module runs whole on one of the two xdist workers (``--dist loadfile``), handed out in
+this order as workers free up (``--no-loadscope-reorder`` keeps it): started last, the
+slowest module left one worker idle for minutes at the end."""
+
+
+def pytest_collection_modifyitems(items):
+    """The heaviest modules first (a stable sort: each module's own order is kept)."""
+    rank = {name: i for i, name in enumerate(HEAVIEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _release_compiled_programs():
     """Each module's compiled programs are released after it: kept for the whole session they

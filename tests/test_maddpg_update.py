@@ -76,6 +76,8 @@ def assert_parameters_close(got, want):
 ADAM_B1, ADAM_B2, ADAM_EPS = 0.9, 0.999, 1e-8
 
 KEY = jax.random.PRNGKey(7)  # the update's key (target-policy smoothing noise)
+# fresh networks in one compiled program (op by op, each case's shapes cost dozens of compilations)
+fresh_learner = jax.jit(init_learner, static_argnums=(1, 2, 3))
 _rng = np.random.default_rng(1)
 RECENT = Transition(  # the recent transitions the approximations fit (a batch of 24, not B)
     obs=jnp.asarray(_rng.standard_normal((24, N, O)), jnp.float32),
@@ -428,7 +430,7 @@ def case(request):
     cfg = AlgoConfig(actor_lr=1e-2, critic_lr=1e-2, hidden=(64, 64), infer_entropy=0.05, **options)
     K = cfg.ensemble
     rng = np.random.default_rng(0)
-    state = init_learner(jax.random.PRNGKey(0), cfg, N, O)
+    state = fresh_learner(jax.random.PRNGKey(0), cfg, N, O)
     state = state.replace(
         target_actor=perturbed(state.target_actor, rng), target_critic=perturbed(state.target_critic, rng)
     )
@@ -591,7 +593,7 @@ def test_delayed_actor_updates_skip_the_actor_and_targets(shared):
         terminated=jnp.zeros((N, B), bool),
     )
     step = jax.jit(update, static_argnums=0)
-    states = [init_learner(jax.random.PRNGKey(0), cfg, N, O)]
+    states = [fresh_learner(jax.random.PRNGKey(0), cfg, N, O)]
     for _ in range(3):
         states.append(step(cfg, states[-1], batch, key=KEY)[0])
     undelayed = step(dataclasses.replace(cfg, actor_delay=1), states[0].replace(updates=None), batch, key=KEY)[0]
@@ -614,11 +616,11 @@ def test_the_observation_normaliser_matches_numpy():
     rng = np.random.default_rng(4)
     first = rng.normal(3.0, 2.0, (5, 7, N, O)).astype(np.float32)
     second = rng.normal(-1.0, 0.5, (11, N, O)).astype(np.float32)
-    state = init_learner(jax.random.PRNGKey(0), cfg, N, O)
+    state = fresh_learner(jax.random.PRNGKey(0), cfg, N, O)
     state = observe_batch(cfg, observe_batch(cfg, state, jnp.asarray(first)), jnp.asarray(second))
     seen = np.concatenate([first.reshape(-1, O), second.reshape(-1, O)]).astype(np.float64)
     np.testing.assert_allclose(state.obs_norm.mean, seen.mean(0), rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(state.obs_norm.var, seen.var(0), rtol=1e-4, atol=1e-5)
     assert float(state.obs_norm.count) == len(seen)
-    plain = init_learner(jax.random.PRNGKey(0), AlgoConfig(hidden=(8,)), N, O)
+    plain = fresh_learner(jax.random.PRNGKey(0), AlgoConfig(hidden=(8,)), N, O)
     assert plain.obs_norm is None and observe_batch(AlgoConfig(hidden=(8,)), plain, jnp.asarray(first)) is plain

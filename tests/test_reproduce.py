@@ -120,7 +120,10 @@ def test_two_optimizer_variants_against_one_maddpg_arm(base, finished, tmp_path,
     test and every run's deterministic evaluation, recomputed from the run folders."""
     for scenario in SCENARIOS:
         shutil.copytree(finished / "runs" / scenario / "maddpg", tmp_path / "runs" / scenario / "maddpg")
-    variants = ("sharp:alpha=3", "schaul:reading=schaul,alpha=0.7,beta=0,importance_weights=true")
+    # the paper's reading (no options of its own: the compiled programs of the optimizer arm
+    # of ``finished``) and Schaul's; a variant's single option (alpha=3) is parsed in
+    # test_the_grid_sets_preset_ensembles_inferred_policies_and_the_optimizer
+    variants = ("paper", "schaul:reading=schaul,alpha=0.7,beta=0,importance_weights=true")
     grid = tiny_grid(tmp_path, algorithms=("maddpg", "maddpg-optimizer"), variants=variants, time_chunks=2)
     reproduce(grid, base, live=False)
     timing = read_table(tmp_path / "timing.csv")  # 2 chunks of every arm, back to back, per scenario
@@ -128,10 +131,10 @@ def test_two_optimizer_variants_against_one_maddpg_arm(base, finished, tmp_path,
     for r in timing:
         timed[(r["scenario"], r["arm"])].append(r["seconds_per_1000"])
     assert sorted(timed) == sorted(
-        (s, a) for s in SCENARIOS for a in ("maddpg", "maddpg-optimizer-sharp", "maddpg-optimizer-schaul")
+        (s, a) for s in SCENARIOS for a in ("maddpg", "maddpg-optimizer-paper", "maddpg-optimizer-schaul")
     )
     assert all(len(x) == 2 and min(x) > 0 for x in timed.values())
-    arms = {"sharp": dict(alpha=3.0), "schaul": dict(reading="schaul", alpha=0.7, beta=0.0, importance_weights=True)}
+    arms = {"paper": {}, "schaul": dict(reading="schaul", alpha=0.7, beta=0.0, importance_weights=True)}
     table = read_table(tmp_path / "table1.csv")
     assert [(int(r["rovers"]), r["arm"]) for r in table] == [
         (n, f"MADDPG + optimizer ({name})") for name in arms for n in (2, 3)

@@ -212,12 +212,23 @@ def test_non_finite_losses_stop_the_run_and_keep_the_last_good_checkpoint(tiny_c
     assert len(read_metrics(out / "metrics.csv")) == 2 * tiny_config.seeds
 
 
+RANKED_OPTIONS = dict(
+    replay="ranked",
+    refresh_every=10,
+    reading="schaul",
+    alpha=0.7,
+    beta=0.0,
+    importance_weights=True,
+    importance_exponent=0.5,
+)
+"""The ranked replay in Schaul's 1/rank reading, with importance weights whose exponent rises from 0.5."""
+
+
 def test_ranked_replay_is_deterministic_and_resumes_exactly(tiny_config, tmp_path, signal_at_chunk):
     """Same seed => same numbers with the experience sample optimizer, also across a Ctrl-C
     (checkpoint of losses and sampling table) and a resume; here in Schaul's 1/rank reading,
     with importance weights whose exponent rises from 0.5 over the run."""
-    options = dict(replay="ranked", refresh_every=10, reading="schaul", alpha=0.7, beta=0.0)
-    config = with_options(tiny_config, dict(options, importance_weights=True, importance_exponent=0.5))
+    config = with_options(tiny_config, RANKED_OPTIONS)
     reference = train(config, progress=False)
     disarm = signal_at_chunk(signal.SIGINT)  # Ctrl-C mid-run: the trainer checkpoints and stops
     with pytest.raises(RunStopped, match="interrupted at episode 200"):
@@ -270,7 +281,8 @@ def test_a_folder_being_written_is_refused_and_a_stale_lock_is_taken_over(tiny_c
     writer = subprocess.Popen(["sleep", "60"])  # a live process holds the folder
     try:
         (out / LOCK).write_text(f"{writer.pid} {socket.gethostname()}")
-        args = ["train", *cli_args(dataclasses.replace(tiny_config, episodes=100)), "--out", str(out)]
+        # (200 episodes: 5000 transitions, the replay stays 4000 long: the tiny runs' program)
+        args = ["train", *cli_args(dataclasses.replace(tiny_config, episodes=200)), "--out", str(out)]
         assert main(args) == 2
         err = capsys.readouterr().err
         assert f"is being written by process {writer.pid}" in err and err.count("\n") == 1
@@ -330,14 +342,16 @@ def test_a_full_disk_keeps_the_previous_file_and_leaves_no_temporary_one(tiny_co
 
 
 @pytest.mark.parametrize(
-    "options", [{}, {"replay": "ranked", "refresh_every": 5}, {"ensemble": 2}], ids=["uniform", "ranked", "partitions"]
+    "options", [{}, RANKED_OPTIONS, {"ensemble": 2}], ids=["uniform", "ranked", "partitions"]
 )
 def test_a_replay_capped_at_the_runs_own_transitions_gives_the_numbers_of_the_full_one(
     tiny_config, monkeypatch, options
 ):
-    config = with_options(tiny_config, {**options, "buffer_size": 50_000, "episodes": 200})
+    # 100 episodes (2500 transitions) beside the tiny config's replay of 4000: the full replay
+    # is the program of the module's other runs with these options
+    config = with_options(tiny_config, {**options, "episodes": 100})
     params = validate(config)
-    assert run_buffer(config, params).capacity == 200 * params.max_steps  # not 50,000
+    assert run_buffer(config, params).capacity == 100 * params.max_steps  # not 4000
     capped = train(config, progress=False)
     monkeypatch.setattr(offpolicy, "run_replay", lambda c, p: c.buffer)
     full = train(config, progress=False)
@@ -421,7 +435,7 @@ def test_run_folders_written_before_the_replay_config_moved_still_load(unbroken,
     raw.update(raw.pop("buffer"))
     (old / "config.json").write_text(json.dumps(raw))
     assert Run(old).config == unbroken.config
-    assert [r["policy"] for r in evaluate_run(old, episodes=20)][2:] == ["maddpg seed 0", "maddpg seed 1"]
+    assert [r["policy"] for r in evaluate_run(old, episodes=50)][2:] == ["maddpg seed 0", "maddpg seed 1"]
     assert main(["train", "--resume", str(old)]) == 0
     assert TIMELESS(read_metrics(old / "metrics.csv")) == TIMELESS(unbroken.metrics)
 
