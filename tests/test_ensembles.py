@@ -13,19 +13,19 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy import stats
-
-from roverswarm.buffers.ranked import ranked_buffer
-from roverswarm.buffers.base import Transition, gather, importance_weights, recent_indices
-from roverswarm.buffers.uniform import uniform_buffer
 from test_ranked import N, transitions
-from roverswarm.cli import main
-from roverswarm.errors import RunStopped, UserError
-from roverswarm.config import validate, with_options
-from roverswarm.evaluate import evaluate_run
+
 from roverswarm.algos.learner import act, init_learner
+from roverswarm.buffers.base import Transition, gather, importance_weights, recent_indices
+from roverswarm.buffers.ranked import ranked_buffer
+from roverswarm.buffers.uniform import uniform_buffer
+from roverswarm.cli import main
+from roverswarm.config import validate, with_options
 from roverswarm.env.mars import observation_size, reset
-from roverswarm.runs import Run
+from roverswarm.errors import RunStopped, UserError
+from roverswarm.evaluate import evaluate_run
 from roverswarm.learners import offpolicy
+from roverswarm.runs import Run
 from roverswarm.trainer import train
 
 K = 3  # sub-policies per agent: with test_ranked's N = 2 agents, G = 6 sampling groups

@@ -11,8 +11,8 @@ import pytest
 from roverswarm.env import get_scenario, observe, reset, step, step_env
 from roverswarm.env.entities import POI, ROVER, TOKEN_FEATURES, TRAP, observe_entities, token_count
 from roverswarm.env.mars import NEVER, EnvState, observation_size
-from roverswarm.env.validation import validate_params
 from roverswarm.env.scenarios import draw_sizes, padded_scenario, scenario_sizes, sized
+from roverswarm.env.validation import validate_params
 from roverswarm.errors import UserError
 from roverswarm.policies import ORACLE, RANDOM
 from roverswarm.rollout import MissionStats, rollout

@@ -34,7 +34,8 @@ from roverswarm.env.mars import NEVER, observe, reset, step_env
 from roverswarm.export import SNIPPET, export_run, random_states
 from roverswarm.learners import learner_family
 from roverswarm.learners.base import Runner
-from roverswarm.runs import CHECKPOINT, CONFIG, Run, atomic_write, save_checkpoint
+from roverswarm.runs import CHECKPOINT, CONFIG, Run
+from roverswarm.storage import atomic_write, save_checkpoint
 
 ort = pytest.importorskip("onnxruntime")  # the export extra (in the test extra too)
 

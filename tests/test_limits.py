@@ -100,7 +100,7 @@ def interrupted(tiny_config, tmp_path_factory):
 def test_a_replay_smaller_than_what_a_resumed_run_filled_is_one_line(interrupted):
     from roverswarm.config import validate, with_options
     from roverswarm.learners import learner_family
-    from roverswarm.runs import load_checkpoint
+    from roverswarm.storage import load_checkpoint
 
     config, out = interrupted
     smaller = with_options(config, {"buffer_size": 1000})

@@ -16,9 +16,9 @@ from roverswarm.cli import main
 from roverswarm.env.mars import NEVER, EnvParams, reset, step_env
 from roverswarm.env.missions import MAX_BYTES, MAX_ENTRIES, load_mission, parse_mission
 from roverswarm.errors import UserError
-from roverswarm.rollout import EpisodeStats, MissionStats, Rollout, rollout
 from roverswarm.mission import load_policy, parse_failures, run_mission, stress_mission
 from roverswarm.policies import ORACLE, RANDOM, OraclePlan, Policy, oracle_goals
+from roverswarm.rollout import EpisodeStats, MissionStats, Rollout, rollout
 
 EXAMPLES = Path(__file__).parent.parent / "examples"
 
@@ -387,9 +387,8 @@ def test_train_on_a_mission_then_run_the_policy_and_refuse_a_mismatch(tiny_confi
     import dataclasses
 
     from roverswarm.config import TrainConfig
-    from roverswarm.trainer import train
-
     from roverswarm.runs import Run
+    from roverswarm.trainer import train
 
     # the mission sets the layout, so the scenario stays at its default (as the command line requires)
     file = tmp_path / "mission.yaml"

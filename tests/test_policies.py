@@ -13,8 +13,8 @@ from roverswarm.algos.learner import AlgoConfig, init_learner
 from roverswarm.config import TrainConfig
 from roverswarm.env import get_scenario
 from roverswarm.env.mars import observation_size
-from roverswarm.rollout import rollout
 from roverswarm.policies import ORACLE, RANDOM, assign_pois, trained_policy
+from roverswarm.rollout import rollout
 
 
 def test_hungarian_assignment_matches_brute_force():

@@ -10,16 +10,16 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from roverswarm.learners import onpolicy
 from roverswarm.algos import ppo, ppo_networks
 from roverswarm.algos.normalize import init_obs_norm, update_obs_norm
 from roverswarm.config import MAPPO, TrainConfig, validate, with_options
 from roverswarm.env.mars import EnvParams, observation_size
 from roverswarm.env.scenarios import get_scenario
 from roverswarm.errors import UserError
-from roverswarm.rollout import normalized_score, rollout
-from roverswarm.policies import ORACLE, RANDOM
+from roverswarm.learners import onpolicy
 from roverswarm.learners.onpolicy import PPO_METRICS
+from roverswarm.policies import ORACLE, RANDOM
+from roverswarm.rollout import normalized_score, rollout
 from roverswarm.runs import Run
 from roverswarm.trainer import train
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from roverswarm.buffers.ranked import _running_sums, ranked_buffer
 from roverswarm.buffers.base import Transition, importance_weights
+from roverswarm.buffers.ranked import _running_sums, ranked_buffer
 from roverswarm.buffers.uniform import uniform_buffer
 
 N = 2  # agents: each ranks by its own losses

@@ -3,29 +3,29 @@
 from __future__ import annotations
 
 import csv
+import multiprocessing
 import os
 import shutil
 import signal
 import socket
-import multiprocessing
 import time
 from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
 import pytest
+from local_ray import killing_a_worker, local_ray
 from scipy import stats
 
 import roverswarm.experiments.pool as pool_module
-from roverswarm.experiments.arms import plan
 from roverswarm.cli import main
+from roverswarm.config import MAPPO, PRESETS, config_from_json, with_options
 from roverswarm.errors import RunStopped, UserError
 from roverswarm.experiments import ReproduceConfig, reproduce
+from roverswarm.experiments.arms import plan
 from roverswarm.experiments.results import PAPER_TABLE1
 from roverswarm.experiments.significance import holm, paired_change, paired_p, relative_change
-from roverswarm.config import MAPPO, PRESETS, config_from_json, with_options
 from roverswarm.runs import write_csv
-from local_ray import killing_a_worker, local_ray
 
 SCENARIOS = ("paper-2", "paper-3")
 ALGORITHMS = ("ddpg", "maddpg", "maddpg-optimizer")

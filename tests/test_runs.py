@@ -13,6 +13,7 @@ import pytest
 from roverswarm.errors import UserError
 from roverswarm.runs import LOCK, folder_lock
 
+
 def contend(folder: Path, go: int, release: int, result: int) -> None:
     """In a forked child: wait for ``go``, try the lock, write 'won' or 'lost' to ``result``;
     a winner holds the lock until ``release`` is readable."""

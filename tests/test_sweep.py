@@ -12,7 +12,6 @@ import pytest
 import yaml
 
 from roverswarm.animation import episode_frames
-
 from roverswarm.cli import main
 from roverswarm.config import with_options
 from roverswarm.errors import UserError

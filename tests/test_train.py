@@ -18,14 +18,15 @@ import jax
 import numpy as np
 import pytest
 
+import roverswarm.trainer as trainer_module
 from roverswarm.cli import main
+from roverswarm.config import REFERENCE, SWARM, TrainConfig, config_from_json, validate, with_options
 from roverswarm.errors import RunStopped, UserError
 from roverswarm.evaluate import evaluate_run
-from roverswarm.config import REFERENCE, SWARM, TrainConfig, config_from_json, validate, with_options
-from roverswarm.runs import CHECKPOINT, LOCK, METRICS, Run, atomic_write, read_metrics
-import roverswarm.trainer as trainer_module
 from roverswarm.learners import FAMILIES, offpolicy
 from roverswarm.learners.offpolicy import run_buffer
+from roverswarm.runs import CHECKPOINT, LOCK, METRICS, Run, read_metrics
+from roverswarm.storage import atomic_write
 from roverswarm.trainer import checkpoint_due, train
 
 TIMELESS = lambda rows: [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rows]  # noqa: E731

@@ -31,7 +31,8 @@ from roverswarm.env.mars import NEVER, EnvParams, EnvState, observation_size, ob
 from roverswarm.env.scenarios import get_scenario, range_sizes
 from roverswarm.errors import UserError, require
 from roverswarm.learners import learner_family, offpolicy
-from roverswarm.runs import CHECKPOINT, Run, atomic_write, folder_lock, read_arrays
+from roverswarm.runs import CHECKPOINT, Run, folder_lock
+from roverswarm.storage import atomic_write, read_arrays
 
 CHECK_OBSERVATIONS = 256
 """Swarm observations of random layouts on which every export is checked against JAX."""

@@ -13,21 +13,20 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal, Union
 
-import tyro
-
 import jax
 import numpy as np
+import tyro
 from matplotlib.figure import Figure
 
+from roverswarm import runs
+from roverswarm.animation import episode_frames
 from roverswarm.env.mars import NEVER, EnvParams
 from roverswarm.env.missions import Mission, load_mission
-from roverswarm.animation import episode_frames
 from roverswarm.env.render import FrameRenderer, save_animation
 from roverswarm.errors import require
+from roverswarm.limits import check_seed
 from roverswarm.policies import ORACLE, Policy
 from roverswarm.rollout import MissionStats, Rollout, rollout
-from roverswarm import runs
-from roverswarm.limits import check_seed
 from roverswarm.runs import folder_lock, write_csv
 
 

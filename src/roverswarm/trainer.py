@@ -33,18 +33,13 @@ from roverswarm.runs import (
     CHECKPOINT,
     CONFIG,
     METRICS,
-    atomic_write,
-    checkpoint_changes,
     folder_lock,
-    load_checkpoint,
-    read_arrays,
     metric_rows,
     plot_learning_curve,
     read_metrics,
-    save_checkpoint,
     write_csv,
 )
-
+from roverswarm.storage import atomic_write, checkpoint_changes, load_checkpoint, read_arrays, save_checkpoint
 
 # ----------------------------------------------------------------------------- host loop
 

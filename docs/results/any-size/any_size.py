@@ -28,7 +28,8 @@ from roverswarm.config import PRESETS
 from roverswarm.evaluate import evaluate_run
 from roverswarm.experiments.sweep import figure, markdown, read_table
 from roverswarm.jaxcache import enable_compilation_cache
-from roverswarm.runs import CONFIG, METRICS, atomic_write, read_metrics, write_csv
+from roverswarm.runs import CONFIG, METRICS, read_metrics, write_csv
+from roverswarm.storage import atomic_write
 
 HERE = Path(__file__).resolve().parent
 SIZES = (2, 3, 4, 5, 6, 7, 8, 9, 10, 12, 16, 20, 32)

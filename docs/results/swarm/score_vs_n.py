@@ -14,7 +14,8 @@ import argparse
 from pathlib import Path
 
 from roverswarm.experiments.sweep import figure, markdown, read_table
-from roverswarm.runs import atomic_write, write_csv
+from roverswarm.runs import write_csv
+from roverswarm.storage import atomic_write
 
 HERE = Path(__file__).resolve().parent
 TABLES = [HERE / "scale.csv", HERE / "targets.csv", HERE / "targets-ddpg.csv", HERE.parent / "ppo" / "ppo-scale.csv"]

@@ -56,11 +56,11 @@ Between refreshes:
 from __future__ import annotations
 
 import functools
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
 from flax import struct
-from typing import Literal
 
 from roverswarm.buffers.base import Buffer, BufferState, Draw, Transition, empty_state, nth_stored, population, write
 

@@ -10,6 +10,7 @@ import numpy as np
 from roverswarm.experiments.results import RunResult, arm_order, label
 from roverswarm.experiments.significance import mean_interval
 
+
 def _figure(width: float, height: float, panels: tuple[int, int]):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure

@@ -18,11 +18,11 @@ from rich.console import Console
 from rich.live import Live
 
 from roverswarm.config import TrainConfig, validate
-from roverswarm.limits import check_training_memory
 from roverswarm.experiments.arms import GridRun, ReproduceConfig, plan, status
 from roverswarm.experiments.live import Summary
 from roverswarm.experiments.pool import default_jobs, train_runs
 from roverswarm.experiments.remote import run_ray
+from roverswarm.limits import check_training_memory
 
 
 def run_grid(config: ReproduceConfig, base: TrainConfig | None = None, live: bool = True) -> list[GridRun]:

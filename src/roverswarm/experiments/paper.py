@@ -24,6 +24,7 @@ from roverswarm.jaxcache import release_compiled_programs
 from roverswarm.learners import learner_family
 from roverswarm.runs import folder_lock, write_csv
 
+
 def time_arms(config: ReproduceConfig, runs: list[GridRun]) -> dict[tuple[str, str], np.ndarray]:
     """(scenario, arm) -> seconds per 1000 episodes of ``config.grid_time_chunks`` chunks of every
     paper-learner arm, timed back to back per scenario (:func:`~roverswarm.experiments.timing.chunk_seconds`).

@@ -25,7 +25,8 @@ from roverswarm.errors import RunStopped, UserError
 from roverswarm.experiments.arms import GridRun, episodes_done, status
 from roverswarm.experiments.live import Summary
 from roverswarm.experiments.stopping import JobsStop
-from roverswarm.runs import CHECKPOINT, LOCK, atomic_write, folder_lock
+from roverswarm.runs import CHECKPOINT, LOCK, folder_lock
+from roverswarm.storage import atomic_write
 from roverswarm.trainer import train
 
 Files = dict[str, bytes]

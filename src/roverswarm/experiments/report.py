@@ -17,6 +17,7 @@ from roverswarm.experiments.results import LABELS, LAST_WINDOW, RunResult, arm_o
 from roverswarm.experiments.significance import mean_interval, relative_change
 from roverswarm.runs import markdown_table
 
+
 def _fmt(x: float, digits: int = 2, suffix: str = "") -> str:
     return "n/a" if not np.isfinite(x) else f"{x:+.{digits}f}{suffix}"
 

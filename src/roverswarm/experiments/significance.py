@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
+
 def mean_interval(x: np.ndarray) -> tuple[float, float]:
     """Mean and half-width of its 95% t-interval (nan with fewer than two samples)."""
     x = np.asarray(x, float)

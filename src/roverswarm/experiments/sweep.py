@@ -40,15 +40,16 @@ import yaml
 from rich.console import Console
 from rich.live import Live
 
+from roverswarm.config import PRESETS, validate, with_options
 from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
 from roverswarm.experiments.arms import Backend, GridRun, check_backend, status
 from roverswarm.experiments.live import Summary
 from roverswarm.experiments.pool import default_jobs, train_runs
 from roverswarm.experiments.remote import run_ray
-from roverswarm.config import PRESETS, validate, with_options
 from roverswarm.limits import check_memory, open_limited, read_limited, safe_name, training_parts
-from roverswarm.runs import METRICS, atomic_write, folder_lock, markdown_table, read_metrics, write_csv
+from roverswarm.runs import METRICS, folder_lock, markdown_table, read_metrics, write_csv
+from roverswarm.storage import atomic_write
 
 EVALUATION = "evaluation.csv"
 

@@ -1,0 +1,148 @@
+"""How a run's state is kept on disk: atomic writes, and the checkpoint, the trainer's state
+as plain arrays in an ``.npz`` file (never pickle), read back into a template of its structure."""
+
+from __future__ import annotations
+
+import os
+import zipfile
+from pathlib import Path
+from typing import IO, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import serialization
+
+from roverswarm.buffers.base import placed
+from roverswarm.config import RESUME_CHANGES, TrainConfig, config_from_json, fields_by_name
+from roverswarm.errors import UserError, require
+
+
+def flatten(tree: dict, prefix: str = "") -> dict[str, np.ndarray]:
+    """The leaves of nested dicts ``tree`` by their slash-joined paths (Nones left out)."""
+    flat = {}
+    for key, value in tree.items():
+        path = f"{prefix}{key}"
+        if isinstance(value, dict):
+            flat.update(flatten(value, path + "/"))
+        elif value is not None:
+            flat[path] = np.asarray(value)
+    return flat
+
+
+def restore(template, flat: dict[str, np.ndarray], prefix: str = ""):
+    """``template`` (a pytree of flax structs) with every leaf replaced by ``flat[path]``."""
+
+    def fill(node, path):
+        if isinstance(node, dict):
+            return {k: fill(v, f"{path}{k}/") for k, v in node.items()}
+        if node is None:
+            return None
+        key = prefix + path[:-1]
+        if key not in flat:
+            raise UserError(f"checkpoint does not match this run: it has no '{key}'")
+        value = flat[key]
+        if value.shape != np.shape(node):
+            raise UserError(
+                f"checkpoint does not match this run: '{key}' has shape {value.shape}, expected {np.shape(node)}"
+            )
+        return jnp.asarray(value)
+
+    return serialization.from_state_dict(template, fill(serialization.to_state_dict(template), ""))
+
+
+CHECKPOINT_CONFIG = "meta/config_json"
+"""The checkpoint's copy of the run's config.json, so that resume notices an edited config.json."""
+
+
+def checkpoint_changes(path: Path, config: TrainConfig) -> list[str]:
+    """The fields in which ``config`` differs from the config checkpoint ``path`` was trained
+    with (none for a checkpoint written before it kept its config), but for those a resume
+    may change (:data:`~roverswarm.config.RESUME_CHANGES`)."""
+    kept = read_arrays(path, CHECKPOINT_CONFIG).get(CHECKPOINT_CONFIG)
+    if kept is None:
+        return []
+    trained = fields_by_name(config_from_json(kept.tobytes().decode()))
+    changed = [name for name, value in fields_by_name(config).items() if trained.get(name) != value]
+    return [name for name in changed if name not in RESUME_CHANGES]
+
+
+def save_checkpoint(path: Path, runner, replay: bool = True, config_json: str | None = None) -> None:
+    """Write ``runner`` (the trainer's state: ``learner``, ``buffer`` and counters) to ``path``
+    atomically (temp file, then rename); plain arrays, no pickle.
+
+    Only the filled part of the replay is written; loading pads it back. With
+    ``replay=False`` (a finished run: nothing left to train) the replay is left out, which
+    makes the file hundreds of times smaller.
+    """
+    runner = jax.device_get(runner)
+    if runner.buffer is not None:
+        filled = int(np.max(runner.buffer.size))
+        runner = runner.replace(
+            buffer=runner.buffer.replace(data=jax.tree.map(lambda x: x[:, :filled], runner.buffer.data))
+        )
+    arrays = flatten(serialization.to_state_dict(runner))
+    if config_json is not None:
+        arrays[CHECKPOINT_CONFIG] = np.frombuffer(config_json.encode(), np.uint8)
+    if not replay:
+        arrays = {k: v for k, v in arrays.items() if not k.startswith("buffer/")}
+    atomic_write(path, lambda f: np.savez(f, **arrays), binary=True)
+
+
+def atomic_write(path: Path, write: Callable[[IO], None], binary: bool = False) -> None:
+    """``write(file)`` into a temporary file beside ``path``, flushed to disk, then renamed over
+    ``path``: a reader sees the old file or the new one, never half of one. If writing fails
+    (a full disk, a read-only folder) the temporary file is removed, ``path`` is left as it
+    was, and :class:`UserError` says so."""
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.unlink(missing_ok=True)  # a link left there is removed, not written through
+        with open(tmp, "wb" if binary else "w", newline=None if binary else "") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError as error:
+        tmp.unlink(missing_ok=True)
+        kept = "the previous version is kept" if path.exists() else "nothing was written"
+        raise UserError(f"cannot write '{path}' ({error.strerror or error}); {kept}") from error
+
+
+def read_arrays(path: Path, prefix: str = "") -> dict[str, np.ndarray]:
+    """The arrays of checkpoint ``path`` whose names start with ``prefix``; :class:`UserError`
+    if the file is truncated or not a checkpoint."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {k: data[k] for k in data.files if k.startswith(prefix)}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
+        raise UserError(f"'{path}' cannot be read ({error}); it is truncated or not a roverswarm checkpoint") from error
+
+
+def load_checkpoint(path: Path, template, buffer=None):
+    """Read a runner written by :func:`save_checkpoint` into the structure of ``template``.
+
+    A finished run's checkpoint keeps no replay: ``template``'s empty one is kept. A replay
+    of another capacity (a run whose ``--episodes`` changed: docs/training.md#extending-a-run)
+    is :func:`~roverswarm.buffers.base.placed` into ``template``'s and made whole by
+    ``buffer`` (its :class:`~roverswarm.buffers.base.Buffer`)."""
+    flat = read_arrays(path)
+    if template.buffer is None:
+        return restore(template, flat)
+    empty = flatten(serialization.to_state_dict(template.buffer), "buffer/")
+    if not any(k.startswith("buffer/") for k in flat):  # a finished run's checkpoint: no replay kept
+        return restore(template, {**flat, **empty})
+    capacity = jax.tree.leaves(template.buffer.data)[0].shape[1]
+    resized = False
+    for key, x in flat.items():
+        if key.startswith("buffer/data/"):  # kept up to the filled part
+            require(
+                x.shape[1] <= capacity,
+                f"--buffer-size: this run's replay already holds {x.shape[1]} transitions per seed and the "
+                f"config gives room for {capacity}; resume with --buffer-size >= {x.shape[1]}",
+            )
+        elif key in empty and x.shape != empty[key].shape:
+            resized = True
+        if key in empty:
+            flat[key] = placed(x, empty[key])
+    runner = restore(template, flat)
+    return runner.replace(buffer=jax.vmap(buffer.resized)(runner.buffer)) if resized else runner
