@@ -19,7 +19,7 @@ from roverswarm.env.entities import LEAD, TOKEN_FEATURES, nearest_entities, obse
 from roverswarm.env.mars import step_env
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
-from roverswarm.learners.onpolicy import collect, configure, size_cap
+from roverswarm.learners.onpolicy import collect, configure, make_batch, size_cap
 from roverswarm.runs import Run
 
 
@@ -61,6 +61,14 @@ def test_mixed_sizes_mask_the_rovers_that_do_not_exist(tiny_anysize):
     assert np.asarray(traj.rewards)[exists].all()
     tokens = np.asarray(traj.obs.mask).sum(-1)  # [T, E, N] real tokens per rover: 3 (n - 1) for a rover of n
     np.testing.assert_array_equal(tokens, np.where(exists, 3 * sizes[None, :, None] - 1, 0))
+    # --balance-sizes: each rover's weight is (largest size) / (its swarm's size), so that every
+    # live step of every episode weighs the same in the loss, whatever its size
+    live = np.asarray(traj.mask)[..., None] * exists  # [T, E, N]
+    for balance, weight in ((False, 1.0), (True, params.num_rovers / sizes[None, :, None])):
+        balanced = dataclasses.replace(config, ppo=dataclasses.replace(config.ppo, balance_sizes=balance))
+        got = np.asarray(make_batch(balanced, state, traj)[0].mask).reshape(exists.shape)
+        np.testing.assert_allclose(got, live * weight, rtol=1e-6)
+    np.testing.assert_allclose(got.sum(-1), params.num_rovers * np.asarray(traj.mask), rtol=1e-6)
 
 
 def test_size_curriculum_widens_the_range():
@@ -119,6 +127,7 @@ def test_a_flat_policy_refuses_another_size(tiny_ppo_config, tmp_path, capsys):
         ({"entity_nearest": 0}, "--network nearest needs --entity-nearest K >= 1"),
         ({"fail_rate": 1.5}, r"--fail-rate must be in \[0, 1\]"),
         ({"size_curriculum": 100, "scenario": "paper-3"}, "--size-curriculum needs a range"),
+        ({"balance_sizes": True, "size_curriculum": 0, "scenario": "paper-3"}, "--balance-sizes needs a range"),
         ({"entity_heads": 3, "entity_dim": 8}, "must be >= 1 and divide --entity-dim"),
     ],
 )

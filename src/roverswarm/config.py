@@ -131,16 +131,19 @@ IPPO = dataclasses.replace(MAPPO, learner=dataclasses.replace(MAPPO.learner, alg
 ANYSIZE = dataclasses.replace(
     MAPPO,
     scenario="paper-2..10",
-    episodes=60_000,
+    episodes=200_000,
     size_curriculum=15_000,
-    learner=dataclasses.replace(MAPPO.learner, network="nearest", entity_nearest=4),
+    learner=dataclasses.replace(MAPPO.learner, network="nearest", entity_nearest=4, hidden=(128, 128)),
+    ppo=dataclasses.replace(MAPPO.ppo, balance_sizes=True),
 )
-"""One policy for every swarm size: MAPPO whose actor and value see each rover's 4 nearest
-other rovers, POIs and traps (nearest first, no rover ids; a POI's token carries the rover's
-lead on it), trained on swarms of 2 to 10 rovers, a size drawn per episode, the largest size
-drawn growing from 2 to 10 over the first 15,000 episodes (``docs/results/any-size/``).
-Attention over the entities (``--network entity``) is the other encoder; one update cost 13
-to 43 times as much here (docs/results/any-size/README.md), too slow for a 5-seed run so far."""
+"""One policy for every swarm size: MAPPO whose 2 x 128 actor and value see each rover's 4
+nearest other rovers, POIs and traps (nearest first, no rover ids; a POI's token carries the
+rover's lead on it), trained on swarms of 2 to 10 rovers, a size drawn per episode, the
+largest size drawn growing from 2 to 10 over the first 15,000 episodes, each episode weighing
+the same in the loss whatever its size (``--balance-sizes``); 200,000 episodes, about 50
+minutes for 5 seeds on 2 cores (``docs/results/any-size/``). Attention over the entities
+(``--network entity``) is the other encoder; one update cost 13 to 43 times as much here
+(docs/results/any-size/README.md), too slow for a 5-seed run so far."""
 
 PRESETS: dict[str, TrainConfig] = {
     "default": TrainConfig(),
@@ -218,10 +221,9 @@ def validate(config: TrainConfig) -> EnvParams:
     _finite(config.checkpoint_minutes, 0, "checkpoint-minutes")
     require(0 <= config.fail_rate <= 1, f"--fail-rate must be in [0, 1] (a probability per episode), got {config.fail_rate}")
     require(config.size_curriculum >= 0, f"--size-curriculum must be >= 0 episodes, got {config.size_curriculum}")
-    require(
-        config.size_curriculum == 0 or (config.mission is None and range_sizes(config.scenario) is not None),
-        "--size-curriculum needs a range of swarm sizes, such as --scenario paper-2..10",
-    )
+    mixed = config.mission is None and range_sizes(config.scenario) is not None
+    for option, on in (("size-curriculum", config.size_curriculum != 0), ("balance-sizes", config.ppo.balance_sizes)):
+        require(not on or mixed, f"--{option} needs a range of swarm sizes, such as --scenario paper-2..10")
     entity = config.learner
     require(
         entity.entity_dim >= 1 and entity.entity_heads >= 1 and entity.entity_dim % entity.entity_heads == 0,

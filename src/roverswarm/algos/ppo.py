@@ -57,7 +57,6 @@ from roverswarm.algos.learner import AlgoConfig
 from roverswarm.algos.normalize import ObsNorm, init_obs_norm
 from roverswarm.algos.ppo_networks import policy_networks
 
-
 # ----------------------------------------------------------------------------- configuration
 
 
@@ -95,6 +94,10 @@ class PPOConfig:
     """Standardise value targets by a running mean and variance (MAPPO's ValueNorm)."""
     normalize_advantages: bool = True
     """Standardise advantages per minibatch."""
+    balance_sizes: bool = False
+    """With mixed swarm sizes: weight each rover's samples by (largest size) / (its swarm's
+    size) in the loss, so that every episode counts the same whatever its size (unweighted, a
+    swarm of 10 gives 5 times the samples of a swarm of 2)."""
 
 
 @dataclass(frozen=True)

@@ -237,9 +237,15 @@ def make_batch(config: OnPolicyConfig, state: PPOState, traj: Trajectory) -> tup
         advantages=flat(advantages),
         targets=flat(targets),
         values=flat(values),
-        mask=flat(mask),
+        mask=flat(mask * size_weights(traj.rovers) if config.ppo.balance_sizes else mask),
     )
     return batch, returns
+
+
+def size_weights(rovers: jax.Array) -> jax.Array:
+    """--balance-sizes: each sample's weight (largest size) / (its swarm's size), [..., N] from
+    the rovers' existence mask [..., N]."""
+    return rovers.shape[-1] / jnp.maximum(jnp.sum(rovers, axis=-1, keepdims=True), 1.0)
 
 
 def iteration(config: OnPolicyConfig, params: EnvParams, state: PPOState, xs: tuple[jax.Array, jax.Array]):
