@@ -173,12 +173,14 @@ def _padded_state(key: int, active: int = 4):
 
 
 def test_a_pois_lead_matches_a_plain_loop():
-    """A POI token's lead is the nearest other existing rover's distance less the rover's own."""
+    """A POI token's lead is the nearest other working rover's distance less the rover's own: a
+    failed rover (rover 1 here) and the empty slots never count."""
     params, state, *_ = _padded_state(20)
+    state = state.replace(fail_step=state.fail_step.at[1].set(0))
     pos, pois = np.asarray(state.rover_pos)[:4], np.asarray(state.poi_pos)[:4]
     view = observe_entities(state, params)
     for i in range(4):
-        others = np.delete(pos, i, axis=0)
+        others = np.delete(pos, [i, 1], axis=0)
         poi_tokens = np.asarray(view.tokens[i])[np.asarray(view.mask[i])][3:7]  # 3 other rovers, then the POIs
         for j, token in enumerate(poi_tokens):
             mine, theirs = np.linalg.norm(pos[i] - pois[j]), np.linalg.norm(others - pois[j], axis=-1).min()

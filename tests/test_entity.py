@@ -89,8 +89,8 @@ def entity_view(world: dict, rng: np.random.Generator) -> tuple[np.ndarray, np.n
         for j in range(p):
             rel = [*(world["poi_pos"][j] - pos), 0, 0]
             gap = lambda k: np.linalg.norm(world["rover_pos"][k] - world["poi_pos"][j])  # noqa: E731
-            others = [gap(k) for k in range(n) if k != i and world["rover_on"][k]]
-            lead = np.clip(min(others, default=np.inf) - gap(i), -2, 2)  # the nearest other rover's distance less mine
+            others = [gap(k) for k in range(n) if k != i and world["rover_on"][k] and not world["failed"][k]]
+            lead = np.clip(min(others, default=np.inf) - gap(i), -2, 2)  # the nearest other working rover's less mine
             rows.append((rel + [0, 1, 0, RADII["poi"], world["observed"][j], lead], world["poi_on"][j]))
         for j in range(t):
             rel = [*(world["trap_pos"][j] - pos), 0, 0]

@@ -17,7 +17,7 @@ in the map's frame (x, y), as the environment's.
   [N, M, 10] with M = (N - 1) + P + T, one per other rover, POI and trap in that order, each
   ``[dx, dy, dvx, dvy, is_rover, is_poi, is_trap, radius, flag, lead]`` relative to the rover
   (flag: a rover has failed, a POI has been observed this episode; lead, of a POI: the nearest
-  other rover's distance to it less this rover's, clipped to +-2), and ``mask`` [N, M] bool
+  other working rover's distance to it less this rover's, clipped to +-2), and ``mask`` [N, M] bool
   (every token here is a real entity). :func:`nearest_entities` cuts it to the K nearest of each type.
 
 Only swarms whose every rover, POI and trap exists are described here (no padded slots):
@@ -63,11 +63,13 @@ LEAD_CAP = 2.0
 """A POI's lead is clipped to [-LEAD_CAP, LEAD_CAP]."""
 
 
-def poi_leads(rover_pos: np.ndarray, poi_pos: np.ndarray) -> np.ndarray:
-    """[N, P] the nearest other rover's distance to each POI less the rover's own, clipped to
-    +-:data:`LEAD_CAP` (+LEAD_CAP for a rover alone)."""
+def poi_leads(rover_pos: np.ndarray, poi_pos: np.ndarray, working: np.ndarray) -> np.ndarray:
+    """[N, P] the nearest other working rover's distance to each POI less the rover's own,
+    clipped to +-:data:`LEAD_CAP` (+LEAD_CAP for a rover with no working other). ``working``
+    [N] bool: the rovers that have not failed."""
     dist = np.sqrt(np.sum(np.square(rover_pos[:, None] - poi_pos[None]), axis=-1))
-    others = np.where(np.eye(len(rover_pos), dtype=bool)[:, :, None], np.inf, dist[None])
+    present = np.where(working[:, None], dist, np.inf)
+    others = np.where(np.eye(len(rover_pos), dtype=bool)[:, :, None], np.inf, present[None])
     return np.clip(np.min(others, axis=1, initial=np.inf) - dist, -LEAD_CAP, LEAD_CAP).astype(np.float32)
 
 
@@ -108,7 +110,7 @@ def observe_entities(
     tokens = np.concatenate(
         [
             _tokens(pos[others] - pos[:, None], vel[others] - vel[:, None], 0, rover_radius, failed[others]),
-            _tokens(pois[None] - pos[:, None], None, 1, _f32(observe_radius), observed, poi_leads(pos, pois)),
+            _tokens(pois[None] - pos[:, None], None, 1, _f32(observe_radius), observed, poi_leads(pos, pois, ~failed)),
             _tokens(traps[None] - pos[:, None], None, 2, _f32(trap_radius), 0.0),
         ],
         axis=1,

@@ -71,14 +71,15 @@ def _tokens(
     return jnp.concatenate([rel_pos, rel_vel, one_hot, radius[..., None], flag[..., None], lead[..., None]], axis=-1)
 
 
-def poi_leads(rover_pos: jax.Array, poi_pos: jax.Array, rovers: jax.Array | None = None) -> jax.Array:
-    """[N, P] each rover's lead on each POI: the nearest *other* rover's distance to the POI
-    less its own, clipped to +-:data:`LEAD_CAP`. Positive: no other rover is closer (the POI
-    is this rover's to take); negative: another rover is that much closer. ``rovers`` [N]
-    bool: the rovers that exist (the others are never nearest; a rover with no other gets
-    +:data:`LEAD_CAP`)."""
+def poi_leads(rover_pos: jax.Array, poi_pos: jax.Array, working: jax.Array) -> jax.Array:
+    """[N, P] each rover's lead on each POI: the nearest other *working* rover's distance to
+    the POI less its own, clipped to +-:data:`LEAD_CAP`. Positive: no other rover that can
+    still move is closer (the POI is this rover's to take); negative: another is that much
+    closer. ``working`` [N] bool: the rovers that exist and have not failed (the others are
+    never nearest: a failed rover beside a POI will not take it; a rover with no working
+    other gets +:data:`LEAD_CAP`)."""
     dist = jnp.sqrt(jnp.sum(jnp.square(rover_pos[:, None] - poi_pos[None]), axis=-1))  # [N, P]
-    present = dist if rovers is None else jnp.where(rovers[:, None], dist, jnp.inf)
+    present = jnp.where(working[:, None], dist, jnp.inf)
     others = jnp.where(jnp.eye(rover_pos.shape[0], dtype=bool)[:, :, None], jnp.inf, present[None])  # [N, N, P]
     return jnp.clip(jnp.min(others, axis=1) - dist, -LEAD_CAP, LEAD_CAP)
 
@@ -88,13 +89,13 @@ def observe_entities(state: EnvState, params: EnvParams) -> EntityView:
     n, p, t = params.num_rovers, params.num_pois, params.num_traps
     pos, vel = state.rover_pos, state.rover_vel
     others = other_rovers(n)  # [N, N - 1]
-    failed = (state.time >= state.fail_step).astype(pos.dtype)
+    failed = state.time >= state.fail_step
     rovers = _tokens(
         pos[others] - pos[:, None],
         vel[others] - vel[:, None],
         ROVER,
         jnp.full((n, n - 1), params.rover_radius, pos.dtype),
-        failed[others],
+        failed[others].astype(pos.dtype),
     )
     zero_vel = jnp.zeros((n, 1, 2), pos.dtype)
     masks = masks_of(state)
@@ -104,7 +105,7 @@ def observe_entities(state: EnvState, params: EnvParams) -> EntityView:
         POI,
         jnp.broadcast_to(observe_radii(params), (n, p)),
         jnp.broadcast_to(state.observed.astype(pos.dtype), (n, p)),
-        poi_leads(pos, state.poi_pos, None if masks is None else masks.rovers),
+        poi_leads(pos, state.poi_pos, ~failed if masks is None else masks.rovers & ~failed),
     )
     traps = _tokens(
         state.trap_pos[None] - pos[:, None],
