@@ -62,7 +62,7 @@ def ref_mlp(p, x):
 
 
 def masked_mean(x, mask):
-    """Mean of ``x`` over the samples where ``mask`` is 1."""
+    """Mean of ``x`` weighted by ``mask`` (0/1 here: the benchmark leaves --balance-sizes off)."""
     return jnp.sum(x * mask) / jnp.maximum(jnp.sum(mask), 1.0)
 
 

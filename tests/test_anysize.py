@@ -64,10 +64,15 @@ def test_mixed_sizes_mask_the_rovers_that_do_not_exist(tiny_anysize):
     # --balance-sizes: each rover's weight is (largest size) / (its swarm's size), so that every
     # live step of every episode weighs the same in the loss, whatever its size
     live = np.asarray(traj.mask)[..., None] * exists  # [T, E, N]
+    made = {
+        balance: make_batch(dataclasses.replace(config, ppo=dataclasses.replace(config.ppo, balance_sizes=balance)), state, traj)
+        for balance in (False, True)
+    }
     for balance, weight in ((False, 1.0), (True, params.num_rovers / sizes[None, :, None])):
-        balanced = dataclasses.replace(config, ppo=dataclasses.replace(config.ppo, balance_sizes=balance))
-        got = np.asarray(make_batch(balanced, state, traj)[0].mask).reshape(exists.shape)
+        got = np.asarray(made[balance][0].mask).reshape(exists.shape)
         np.testing.assert_allclose(got, live * weight, rtol=1e-6)
+    for statistic in ("mean", "var"):  # the value targets' running statistics count each sample once
+        np.testing.assert_allclose(getattr(made[True][1], statistic), getattr(made[False][1], statistic))
     np.testing.assert_allclose(got.sum(-1), params.num_rovers * np.asarray(traj.mask), rtol=1e-6)
 
 

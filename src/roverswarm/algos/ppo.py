@@ -231,7 +231,7 @@ class Batch:
     advantages: jax.Array  # [B]
     targets: jax.Array  # [B] value targets R (standardised with --value-norm)
     values: jax.Array  # [B] the rollout's values V_old (standardised with --value-norm)
-    mask: jax.Array  # [B] 1 for a real step, 0 for a step after a termination
+    mask: jax.Array  # [B] sample weights: 0 after a termination or for no rover, else 1 (--balance-sizes: B / N)
 
 
 def _masked_mean(x: jax.Array, mask: jax.Array) -> jax.Array:
@@ -245,7 +245,8 @@ def ppo_loss(
 
     ``log_probs`` [B] of the batch's actions, ``entropy`` [B] and ``values`` [B] under the
     current networks; ``batch`` holds the rollout's log-probabilities, advantages, value
-    targets, values and mask (means are over the masked-in samples).
+    targets, values and mask (means, and the advantages' standardisation, are weighted by the
+    mask: over the masked-in samples, each by its --balance-sizes weight).
 
     Returns ``(total, parts)``, parts: ``policy_loss``, ``value_loss``, ``entropy``,
     ``approx_kl`` (mean of (rho - 1) - log rho), ``clip_fraction`` (|rho - 1| > eps).

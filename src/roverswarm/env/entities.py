@@ -13,8 +13,8 @@ Per rover i (pure JAX, jittable, vmappable; leading batch axes come only from vm
   traps, which never move), the type as a one-hot, the entity's radius (a rover's body, a POI's
   observation radius, a trap's radius), a flag (a rover: it has failed; a POI: it has been
   observed this episode; a trap: 0) and, for a POI, rover i's lead on it (:func:`poi_leads`:
-  how much nearer rover i is than every other rover, negative if another is nearer; 0 for
-  rovers and traps). Other rovers in index order skipping i, then POIs, traps;
+  how much nearer rover i is than every other working rover, negative if another is nearer;
+  0 for rovers and traps). Other rovers in index order skipping i, then POIs, traps;
 * ``mask`` [N, M] bool: the token is an entity that exists. In an unpadded layout every token
   exists; in a padded one the slots past the active counts do not (their features are zeros),
   and the rows of rovers that do not exist are all False.
