@@ -2,6 +2,7 @@
 
     python docs/results/any-size/any_size.py --run runs/anysize              # train (or resume), then evaluate
     python docs/results/any-size/any_size.py --run runs/anysize --evaluate   # evaluate the run as it stands
+    python docs/results/any-size/any_size.py --run runs/anysize --stress-only  # only its mission stress
 
 Trains ``roverswarm train --preset anysize --seeds 5`` (MAPPO over each rover's nearest
 entities on paper-2..10, a size drawn per episode) into ``--run`` (resumed if it is there; Ctrl-C saves),
@@ -10,7 +11,7 @@ then evaluates every seed's deterministic policy at N = 2..10 (the sizes it trai
 random and the oracle. Writes ``any-size.csv`` / ``.md`` (the sweep tables' columns: every seed's
 score, the means of POIs observed, collisions and trap contacts, the oracle's trap contacts)
 and ``any-size.png``: the score against N beside the best per-size rows of the scale sweeps
-(``docs/results/swarm/score-vs-n.csv``) and the first anysize run (``any-size-v1.csv``).
+(``docs/results/swarm/score-vs-n.csv``) and the earlier anysize runs (``any-size-v1.csv``, ``any-size-v2.csv``).
 Last, ``mission stress`` of ``examples/mission.yaml`` for every seed, with and without one
 random rover failure, beside the oracle: ``any-size-stress.csv``.
 """
@@ -35,8 +36,9 @@ HERE = Path(__file__).resolve().parent
 SIZES = (2, 3, 4, 5, 6, 7, 8, 9, 10, 12, 16, 20, 32)
 BASELINES = {"swarm (60k)", "swarm-ddpg (60k)", "mappo (40k)"}
 """The best per-size rows of today (one network per size), from the scale sweeps."""
-FIRST = HERE / "any-size-v1.csv"
-"""The first anysize run's rows (20,000 episodes, no POI lead, no curriculum), kept beside the new."""
+EARLIER = (HERE / "any-size-v1.csv", HERE / "any-size-v2.csv")
+"""The earlier anysize runs' rows, kept beside the new: the first (20,000 episodes, no POI lead,
+no curriculum) and the second (60,000 episodes, 2 x 64 networks, no sample balance)."""
 
 
 def trained(run: Path) -> tuple[int, float]:
@@ -96,20 +98,22 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--eval-episodes", type=int, default=1000)
     parser.add_argument("--evaluate", action="store_true", help="evaluate the run as it stands, train nothing")
+    parser.add_argument("--stress-only", action="store_true", help="only mission stress of the run as it stands")
     parser.add_argument("--stress-episodes", type=int, default=500, help="mission stress episodes per seed")
     parser.add_argument("--out", type=Path, default=HERE / "any-size", help="output path without suffix")
     args = parser.parse_args()
     enable_compilation_cache()
-    if not args.evaluate:
+    if not (args.evaluate or args.stress_only):
         config = dataclasses.replace(PRESETS["anysize"], episodes=args.episodes, seeds=args.seeds)
         train(config, out=args.run, resume=(args.run / CONFIG).exists())
-    rows = table(args.run, args.eval_episodes)
-    write_csv(args.out.with_suffix(".csv"), rows)
-    atomic_write(args.out.with_suffix(".md"), lambda f: f.write(markdown(rows)))
-    baselines = [r for r in read_table(HERE.parent / "swarm" / "score-vs-n.csv") if r["setting"] in BASELINES]
-    baselines += read_table(FIRST)
-    figure(rows + baselines, args.out.with_suffix(".png"))
-    print(markdown(rows))
+    if not args.stress_only:
+        rows = table(args.run, args.eval_episodes)
+        write_csv(args.out.with_suffix(".csv"), rows)
+        atomic_write(args.out.with_suffix(".md"), lambda f: f.write(markdown(rows)))
+        baselines = [r for r in read_table(HERE.parent / "swarm" / "score-vs-n.csv") if r["setting"] in BASELINES]
+        baselines += [row for path in EARLIER for row in read_table(path)]
+        figure(rows + baselines, args.out.with_suffix(".png"))
+        print(markdown(rows))
     stressed = stress(args.run, args.seeds, args.stress_episodes)
     write_csv(args.out.with_name(args.out.name + "-stress.csv"), stressed)
     for row in stressed:
