@@ -76,6 +76,35 @@ def test_mixed_sizes_mask_the_rovers_that_do_not_exist(tiny_anysize):
     np.testing.assert_allclose(got.sum(-1), params.num_rovers * np.asarray(traj.mask), rtol=1e-6)
 
 
+def test_stop_when_complete_ends_an_episode_once_every_poi_is_observed(tiny_anysize):
+    """--stop-when-complete: with the same keys, an episode's steps are those of a run without
+    it until the first step at which every POI is observed (read from the POI tokens' flags of
+    that run); that step terminates the episode and nothing after it counts. Without the option
+    no episode terminates. A wide observation radius lets the untrained policy finish some."""
+    many = dataclasses.replace(tiny_anysize, num_envs=20)
+    params = validate(many).replace(observe_radius=0.6)
+    state = ppo.init_ppo(jax.random.PRNGKey(0), configure(many, params), params.num_rovers, 0)
+    runs = {}
+    for stop in (False, True):
+        config = configure(dataclasses.replace(many, stop_when_complete=stop), params)
+        runs[stop] = jax.jit(lambda k, c=config: collect(c, params, state.actor, k))(jax.random.PRNGKey(3))[0]
+    plain, stopped = runs[False], runs[True]
+    assert not np.asarray(plain.terminated).any()
+    tokens, exists = np.asarray(plain.next_obs.tokens)[:, :, 0], np.asarray(plain.next_obs.mask)[:, :, 0]  # rover 0
+    pois = exists & (tokens[..., 5] == 1)  # [T, E, M]
+    complete = np.all(~pois | (tokens[..., 8] == 1), axis=-1)  # [T, E]: every POI observed after step t
+    terminated, ended = np.asarray(stopped.terminated), complete.any(axis=0)
+    assert 0 < ended.sum() < many.num_envs
+    np.testing.assert_array_equal(terminated.any(axis=0), ended)
+    for e in range(many.num_envs):
+        last = int(complete[:, e].argmax()) if ended[e] else complete.shape[0] - 1
+        assert not ended[e] or terminated[last, e] and terminated[:, e].sum() == 1
+        np.testing.assert_array_equal(np.asarray(stopped.mask)[:, e], np.arange(len(complete)) <= last)
+        rewards = np.asarray(stopped.rewards)[:, e]
+        np.testing.assert_array_equal(rewards[: last + 1], np.asarray(plain.rewards)[: last + 1, e])
+        assert not rewards[last + 1 :].any()
+
+
 def test_size_curriculum_widens_the_range():
     config = configure(
         dataclasses.replace(ANYSIZE, size_curriculum=1000), validate(dataclasses.replace(ANYSIZE, size_curriculum=1000))
@@ -141,9 +170,10 @@ def test_bad_any_size_options_name_the_field(options, pattern):
         validate(with_options(ANYSIZE, options))
 
 
-def test_the_off_policy_family_refuses_entity_networks_for_now():
-    with pytest.raises(UserError, match="only the flat view's networks"):
-        validate(with_options(TrainConfig(), {"network": "entity"}))
+@pytest.mark.parametrize("options", [{"network": "entity"}, {"fail_rate": 0.1}, {"stop_when_complete": True}])
+def test_the_off_policy_family_refuses_entity_networks_failures_and_stops_for_now(options):
+    with pytest.raises(UserError, match="only the flat view's networks, no failures and fixed-length episodes"):
+        validate(with_options(TrainConfig(), options))
 
 
 def test_the_nearest_view_is_the_k_nearest_of_each_type_sorted_and_padded():

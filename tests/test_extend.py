@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import dataclasses
 import signal
+import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+from roverswarm import trainer
 from roverswarm.cli import main
 from roverswarm.config import with_options
 from roverswarm.errors import RunStopped
@@ -131,3 +134,25 @@ def test_a_bad_extension_is_one_line_and_exit_2(finished, argv, message, capsys)
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1, err
     assert (run / "metrics.csv").read_text() == before and "300" in (run / "config.json").read_text()
+
+
+@pytest.mark.parametrize("family", ["maddpg", "mappo"])
+def test_a_run_ends_at_its_budget_and_a_larger_budget_continues_it(
+    family, tiny_config, tiny_ppo_config, tmp_path, monkeypatch, capsys
+):
+    """On a clock where every chunk takes 30 s, --budget-minutes 1 ends a 400-episode run after
+    two chunks (200 episodes, with its replay); resuming it with the spent budget is one line
+    and exit 2; --budget-minutes 2 then continues it to the numbers of the run trained at once."""
+    config = tiny_config if family == "maddpg" else tiny_ppo_config
+    config = dataclasses.replace(config, episodes=4 * config.log_every, budget_minutes=1.0)
+    clock = iter(range(0, 10_000, 30))
+    monkeypatch.setattr(trainer, "time", SimpleNamespace(perf_counter=lambda: next(clock), monotonic=time.monotonic))
+    train(config, out=tmp_path, progress=False)
+    with np.load(tmp_path / CHECKPOINT) as data:
+        assert int(data["episodes"]) == 2 * config.log_every
+        assert any(k.startswith("buffer/") for k in data.files) == (family == "maddpg")
+    assert main(["train", "--resume", str(tmp_path)]) == 2
+    assert "the run has spent its budget (1.0 of --budget-minutes 1)" in capsys.readouterr().err
+    assert main(["train", "--resume", str(tmp_path), "--budget-minutes", "2"]) == 0
+    at_once = train(dataclasses.replace(config, budget_minutes=0.0), progress=False)
+    assert timeless(read_metrics(tmp_path / "metrics.csv")) == timeless(at_once.metrics)

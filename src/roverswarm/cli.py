@@ -203,7 +203,8 @@ def _option(argv: list[str], name: str) -> str | None:
 def _train_defaults(argv: list[str]) -> dict[str, object]:
     """Default instances of the commands: ``train --preset NAME`` starts from that preset;
     ``train --resume RUN`` from the run's own config, so that an option given beside it is
-    one that changes the run (only ``--episodes`` may: :func:`~roverswarm.config.resumed_config`)."""
+    one that changes the run (only ``--episodes`` and ``--budget-minutes`` may:
+    :func:`~roverswarm.config.resumed_config`)."""
     if argv[:1] != ["train"]:
         return {}
     preset = _option(argv, "--preset") or "default"

@@ -77,6 +77,10 @@ class TrainConfig:
     fail_rate: float = 0.0
     """Probability per training episode that one rover, drawn uniformly, fails at a uniform
     step (it stops where it is; see docs/environment.md#rover-failures). Evaluation has none."""
+    stop_when_complete: bool = False
+    """A training episode ends once every POI has been observed (a mission file's
+    ``stop_when_complete``): no reward after, so finishing sooner pays and a swarm that lost a
+    rover must still visit every POI. Evaluation keeps the scenario's fixed-length episodes."""
     size_curriculum: int = 0
     """With a range scenario: the largest swarm size drawn grows linearly from the range's
     smallest to its largest over this many episodes; 0 draws every size from the start."""
@@ -84,6 +88,11 @@ class TrainConfig:
     """A checkpoint is also written at the end of the first chunk that finishes this many
     minutes after the last one, so a killed long run loses at most about that much training;
     0 leaves checkpoints to --checkpoint-every alone. Never changes the run's numbers."""
+    budget_minutes: float = 0.0
+    """Wall-time budget: the run ends with the first chunk that finishes after this many
+    minutes of training (summed over resumes, compilation included), or at --episodes, whichever
+    comes first. Schedules count episodes, not minutes, so the episodes reached depend on the
+    machine; the numbers up to them do not. A resume may raise it. 0: no budget."""
 
     def env_name(self) -> str:
         """What the run trains on: the scenario, or the mission file's name."""
@@ -219,6 +228,7 @@ def validate(config: TrainConfig) -> EnvParams:
     _algo_options(config)
     _positive(config, ("episodes", "seeds", "num_envs", "log_every", "checkpoint_every"))
     _finite(config.checkpoint_minutes, 0, "checkpoint-minutes")
+    _finite(config.budget_minutes, 0, "budget-minutes")
     require(0 <= config.fail_rate <= 1, f"--fail-rate must be in [0, 1] (a probability per episode), got {config.fail_rate}")
     require(config.size_curriculum >= 0, f"--size-curriculum must be >= 0 episodes, got {config.size_curriculum}")
     mixed = config.mission is None and range_sizes(config.scenario) is not None
@@ -300,9 +310,9 @@ def with_options(base: TrainConfig, options: dict[str, object], where: str = "op
     return config
 
 
-RESUME_CHANGES = ("episodes",)
-"""The options a resumed run may change: ``--episodes``, to extend a finished or interrupted
-run (docs/training.md#extending-a-run). Every other one is the run's own."""
+RESUME_CHANGES = ("episodes", "budget_minutes")
+"""The options a resumed run may change: ``--episodes`` and ``--budget-minutes``, to extend a
+finished or interrupted run (docs/training.md#extending-a-run). Every other one is the run's own."""
 
 
 def resumed_config(given: TrainConfig, saved: TrainConfig) -> TrainConfig:

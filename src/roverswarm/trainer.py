@@ -120,6 +120,17 @@ def checkpoint_due(config: TrainConfig, chunks_done: int, saved_at: float) -> bo
     return chunks_done % config.checkpoint_every == 0 or by_time
 
 
+def training_seconds(rows: list[dict[str, float]]) -> float:
+    """Wall seconds a run has trained, over all its sessions: the sum of its metrics rows'
+    ``wall_seconds`` (each chunk's time for all seeds, so one seed's rows)."""
+    return sum(r["wall_seconds"] for r in rows if r["seed"] == 0)
+
+
+def budget_spent(config: TrainConfig, seconds: float) -> bool:
+    """Whether ``seconds`` of training use up the run's ``--budget-minutes`` (never without one)."""
+    return config.budget_minutes > 0 and seconds >= 60 * config.budget_minutes
+
+
 def physical_memory() -> int:
     """Bytes of physical memory of this machine."""
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
@@ -153,7 +164,7 @@ def _check_replay_fits(config: TrainConfig, params: EnvParams) -> None:
 
 
 def _check_resumable(config: TrainConfig, out: Path) -> None:
-    """``out`` holds a run trained with ``config`` but for its episodes (:data:`RESUME_CHANGES`),
+    """``out`` holds a run trained with ``config`` but for its episodes and budget (:data:`RESUME_CHANGES`),
     which may grow to extend it, never below what the checkpoint has trained; else
     :class:`UserError`."""
     checkpoint = out / CHECKPOINT
@@ -218,6 +229,12 @@ def _train(
 
     chunks = config.episodes // config.log_every
     first = int(runner.episodes) // config.log_every
+    spent = training_seconds(rows)
+    require(
+        not budget_spent(config, spent) or first == chunks,
+        f"--resume: the run has spent its budget ({spent / 60:.1f} of --budget-minutes {config.budget_minutes:g}); "
+        "give a larger --budget-minutes to continue it",
+    )
     bar = Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
@@ -256,6 +273,7 @@ def _train(
                         "smaller learning rates."
                     )
                 rows.extend(new_rows)
+                spent += seconds
                 if writer is not None:
                     for r in new_rows:
                         for k, v in r.items():
@@ -269,11 +287,13 @@ def _train(
                     reward=f"{np.mean(metrics['episode_reward']):.1f}",
                     rate=f"{config.log_every / seconds:,.0f}",
                 )
-                last = chunk + 1 == chunks
+                out_of_time = budget_spent(config, spent) and chunk + 1 < chunks
+                last = chunk + 1 == chunks or out_of_time
                 if out is not None:  # every chunk's rows at once; rows past the checkpoint are trimmed on resume
                     write_csv(out / METRICS, rows)
                 if out is not None and (last or stop.raised or checkpoint_due(config, chunk + 1 - first, saved_at)):
-                    save_checkpoint(out / CHECKPOINT, runner, replay=not last, config_json=config_to_json(config))
+                    unfinished = chunk + 1 < chunks  # a finished run's replay is dropped (most of the file)
+                    save_checkpoint(out / CHECKPOINT, runner, replay=unfinished, config_json=config_to_json(config))
                     saved_at = time.monotonic()
                 if stop.raised and not last:
                     if out is not None:
@@ -286,6 +306,12 @@ def _train(
                         else "nothing saved (no --out)"
                     )
                     raise RunStopped(f"interrupted at episode {episodes}; {where}")
+                if out_of_time:
+                    bar.console.print(
+                        f"--budget-minutes {config.budget_minutes:g} spent after {spent / 60:.1f} minutes: "
+                        f"the run ends at episode {episodes} of {config.episodes}"
+                    )
+                    break
     finally:  # flush TensorBoard also when the run stops early
         if writer is not None:
             writer.close()

@@ -115,6 +115,7 @@ class OnPolicyConfig:
     mission: str | None = None
     size_curriculum: int = 0
     fail_rate: float = 0.0
+    stop_when_complete: bool = False
 
 
 def updates_per_iteration(config: PPOConfig) -> int:

@@ -135,11 +135,17 @@ def size_cap(config: OnPolicyConfig, episodes: jax.Array) -> jax.Array:
     return low + jnp.minimum(episodes / config.size_curriculum, 1.0) * (high - low)
 
 
-def _reset_all(config: OnPolicyConfig, params: EnvParams, key: jax.Array, episodes: jax.Array):
-    """E fresh episodes: of one size, or each of a size drawn from :func:`sizes_of` (up to
-    :func:`size_cap`); with --fail-rate, one rover may fail in each."""
+def training_params(config: OnPolicyConfig, params: EnvParams) -> EnvParams:
+    """The environment training steps: ``params`` with --fail-rate (one rover may fail in each
+    episode) and --stop-when-complete (an episode ends once every POI is observed)."""
     if config.fail_rate > 0:
         params = params.replace(fail_rate=config.fail_rate)
+    return params.replace(terminate_on_complete=params.terminate_on_complete or config.stop_when_complete)
+
+
+def _reset_all(config: OnPolicyConfig, params: EnvParams, key: jax.Array, episodes: jax.Array):
+    """E fresh episodes: of one size, or each of a size drawn from :func:`sizes_of` (up to
+    :func:`size_cap`)."""
     keys = jax.random.split(key, config.num_envs)  # the layouts of one size as before sizes could mix
     sizes = sizes_of(config)
     if sizes is None:
@@ -161,6 +167,7 @@ def collect(
     """
     nets = policy_networks(config.learner, config.ppo)
     observe_all = jax.vmap(nets.observe, in_axes=(0, None))
+    params = training_params(config, params)
     k_reset, k_steps = jax.random.split(key)
     env_state = _reset_all(config, params, k_reset, episodes)
     obs = observe_all(env_state, params)
