@@ -11,7 +11,7 @@ out (as absent rovers of a mixed-size batch). In one run:
   on-policy config: Flax MLPs over :func:`~roverswarm.algos.ppo_networks.flat_tokens`,
   optax's global-norm clipping and Adam;
 * ``reference``: the same update written below in plain ``jax.numpy`` (no Flax, no optax):
-  the 2 x 64 tanh MLPs on the same parameter dicts, the Gaussian log-probability and
+  the tanh MLPs (2 x 128) on the same parameter dicts, the Gaussian log-probability and
   entropy, the PPO loss, gradients by ``jax.grad``, clipping by global norm, Adam with bias
   correction; it reads and returns the same pytrees (:class:`~roverswarm.algos.ppo.PPOState`
   and the loss parts). Both start from a state a few updates old (so Adam's moments are not
@@ -129,7 +129,10 @@ def ref_update(config, state: PPOState, batch: Batch):
 
 def anysize_config(n: int):
     """The ``anysize`` preset on ``paper-N``: (on-policy config, environment params)."""
-    run = dataclasses.replace(PRESETS["anysize"], scenario=f"paper-{n}", size_curriculum=0)
+    preset = PRESETS["anysize"]
+    # one size: --balance-sizes (weights of largest size / N, here all 1) needs a range
+    ppo = dataclasses.replace(preset.ppo, balance_sizes=False)
+    run = dataclasses.replace(preset, scenario=f"paper-{n}", size_curriculum=0, ppo=ppo)
     params = validate(run)
     config = configure(run, params)
     ppo = config.ppo
