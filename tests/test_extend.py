@@ -14,6 +14,7 @@ from roverswarm import trainer
 from roverswarm.cli import main
 from roverswarm.config import with_options
 from roverswarm.errors import RunStopped
+from roverswarm.experiments.arms import GridRun, status
 from roverswarm.learners import FAMILIES
 from roverswarm.runs import CHECKPOINT, read_metrics
 from roverswarm.trainer import train
@@ -141,8 +142,9 @@ def test_a_run_ends_at_its_budget_and_a_larger_budget_continues_it(
     family, tiny_config, tiny_ppo_config, tmp_path, monkeypatch, capsys
 ):
     """On a clock where every chunk takes 30 s, --budget-minutes 1 ends a 400-episode run after
-    two chunks (200 episodes, with its replay); resuming it with the spent budget is one line
-    and exit 2; --budget-minutes 2 then continues it to the numbers of the run trained at once."""
+    two chunks (200 episodes, with its replay), which a sweep counts as done; resuming it with
+    the spent budget is one line and exit 2; --budget-minutes 2 then continues it to the
+    numbers of the run trained at once."""
     config = tiny_config if family == "maddpg" else tiny_ppo_config
     config = dataclasses.replace(config, episodes=4 * config.log_every, budget_minutes=1.0)
     clock = iter(range(0, 10_000, 30))
@@ -151,6 +153,7 @@ def test_a_run_ends_at_its_budget_and_a_larger_budget_continues_it(
     with np.load(tmp_path / CHECKPOINT) as data:
         assert int(data["episodes"]) == 2 * config.log_every
         assert any(k.startswith("buffer/") for k in data.files) == (family == "maddpg")
+    assert status(GridRun("paper-2", family, config, tmp_path)) == "done"  # a sweep keeps it as it is
     assert main(["train", "--resume", str(tmp_path)]) == 2
     assert "the run has spent its budget (1.0 of --budget-minutes 1)" in capsys.readouterr().err
     assert main(["train", "--resume", str(tmp_path), "--budget-minutes", "2"]) == 0

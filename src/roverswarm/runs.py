@@ -119,6 +119,17 @@ def _lock_owner(path: Path) -> str | None:
     return f"{pid} on {host}"
 
 
+def training_seconds(rows: list[dict[str, float]]) -> float:
+    """Wall seconds a run has trained, over all its sessions: the sum of its metrics rows'
+    ``wall_seconds`` (each chunk's time for all seeds, so one seed's rows)."""
+    return sum(r["wall_seconds"] for r in rows if r["seed"] == 0)
+
+
+def budget_spent(config: TrainConfig, seconds: float) -> bool:
+    """Whether ``seconds`` of training use up the run's ``--budget-minutes`` (never without one)."""
+    return config.budget_minutes > 0 and seconds >= 60 * config.budget_minutes
+
+
 def metric_rows(
     config: TrainConfig, metrics: dict[str, np.ndarray], episodes: int, seconds: float
 ) -> list[dict[str, float]]:

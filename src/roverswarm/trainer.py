@@ -33,10 +33,12 @@ from roverswarm.runs import (
     CHECKPOINT,
     CONFIG,
     METRICS,
+    budget_spent,
     folder_lock,
     metric_rows,
     plot_learning_curve,
     read_metrics,
+    training_seconds,
     write_csv,
 )
 from roverswarm.storage import atomic_write, checkpoint_changes, load_checkpoint, read_arrays, save_checkpoint
@@ -118,17 +120,6 @@ def checkpoint_due(config: TrainConfig, chunks_done: int, saved_at: float) -> bo
     written (``saved_at``, on ``time.monotonic``)."""
     by_time = config.checkpoint_minutes > 0 and time.monotonic() - saved_at >= 60 * config.checkpoint_minutes
     return chunks_done % config.checkpoint_every == 0 or by_time
-
-
-def training_seconds(rows: list[dict[str, float]]) -> float:
-    """Wall seconds a run has trained, over all its sessions: the sum of its metrics rows'
-    ``wall_seconds`` (each chunk's time for all seeds, so one seed's rows)."""
-    return sum(r["wall_seconds"] for r in rows if r["seed"] == 0)
-
-
-def budget_spent(config: TrainConfig, seconds: float) -> bool:
-    """Whether ``seconds`` of training use up the run's ``--budget-minutes`` (never without one)."""
-    return config.budget_minutes > 0 and seconds >= 60 * config.budget_minutes
 
 
 def physical_memory() -> int:

@@ -3,6 +3,7 @@
     python docs/results/any-size/any_size.py --run runs/anysize              # train (or resume), then evaluate
     python docs/results/any-size/any_size.py --run runs/anysize --evaluate   # evaluate the run as it stands
     python docs/results/any-size/any_size.py --run runs/anysize --stress-only  # only its mission stress
+    python docs/results/any-size/any_size.py --specialists runs/specialists  # one network per size, then the figure
 
 Trains ``roverswarm train --preset anysize --seeds 5`` (MAPPO over each rover's nearest
 entities on paper-2..10, a size drawn per episode) into ``--run`` (resumed if it is there; Ctrl-C saves),
@@ -14,6 +15,11 @@ and ``any-size.png``: the score against N beside the best per-size rows of the s
 (``docs/results/swarm/score-vs-n.csv``) and the earlier anysize runs (``any-size-v1.csv``, ``any-size-v2.csv``).
 Last, ``mission stress`` of ``examples/mission.yaml`` for every seed, with and without one
 random rover failure, beside the oracle: ``any-size-stress.csv``.
+
+``--specialists FOLDER`` trains the same network on one size each (``paper-N`` for N in
+:data:`SPECIALIST_SIZES`, no size mixing, 20,000 episodes: about what the one policy sees of
+each of its 9 sizes in 200,000), 5 seeds each, evaluates each at its own size and writes
+``any-size-specialists.csv``; the figure then shows them beside the one policy.
 """
 
 from __future__ import annotations
@@ -29,7 +35,7 @@ from roverswarm.config import PRESETS
 from roverswarm.evaluate import evaluate_run
 from roverswarm.experiments.sweep import figure, markdown, read_table
 from roverswarm.jaxcache import enable_compilation_cache
-from roverswarm.runs import CONFIG, METRICS, read_metrics, write_csv
+from roverswarm.runs import CONFIG, METRICS, read_metrics, training_seconds, write_csv
 from roverswarm.storage import atomic_write
 
 HERE = Path(__file__).resolve().parent
@@ -39,21 +45,22 @@ BASELINES = {"swarm (60k)", "swarm-ddpg (60k)", "mappo (40k)"}
 EARLIER = (HERE / "any-size-v1.csv", HERE / "any-size-v2.csv")
 """The earlier anysize runs' rows, kept beside the new: the first (20,000 episodes, no POI lead,
 no curriculum) and the second (60,000 episodes, 2 x 64 networks, no sample balance)."""
+SPECIALIST_SIZES = (2, 3, 5, 8, 10)
+SPECIALISTS = HERE / "any-size-specialists.csv"
 
 
 def trained(run: Path) -> tuple[int, float]:
     """(episodes per seed, minutes) the run has trained so far (it may have been stopped early)."""
-    rows = [r for r in read_metrics(run / METRICS) if r["seed"] == 0]
-    return int(max(r["episodes"] for r in rows)), sum(r["wall_seconds"] for r in rows) / 60
+    rows = read_metrics(run / METRICS)
+    return int(max(r["episodes"] for r in rows)), training_seconds(rows) / 60
 
 
-def table(run: Path, episodes: int) -> list[dict[str, object]]:
-    """One row per size: every seed's normalised score and the means the sweep tables give."""
+def table(run: Path, episodes: int, sizes=SIZES, setting: str = "anysize") -> list[dict[str, object]]:
+    """One row per size of ``sizes``: every seed's normalised score and the means the sweep tables give."""
     done, minutes = trained(run)
-    sizes = ",".join(str(n) for n in SIZES)
     rows = []
-    evaluated = evaluate_run(run, episodes, scenario=f"paper-{sizes}")
-    for n in SIZES:
+    evaluated = evaluate_run(run, episodes, scenario="paper-" + ",".join(str(n) for n in sizes))
+    for n in sizes:
         mine = [r for r in evaluated if r["scenario"] == f"paper-{n}"]
         by = {r["policy"]: r for r in mine}
         seeds = [r for r in mine if r["policy"] not in ("random", "oracle")]
@@ -61,7 +68,7 @@ def table(run: Path, episodes: int) -> list[dict[str, object]]:
         rows.append(
             {
                 "scenario": f"paper-{n}",
-                "setting": f"anysize ({done / 1000:g}k)",
+                "setting": f"{setting} ({done / 1000:g}k)",
                 "episodes": done,
                 "seeds": len(seeds),
                 "scores": " / ".join(f"{s:.2f}" for s in scores),
@@ -76,6 +83,30 @@ def table(run: Path, episodes: int) -> list[dict[str, object]]:
             }
         )
     return rows
+
+
+def specialists(folder: Path, episodes: int, seeds: int, eval_episodes: int) -> list[dict[str, object]]:
+    """The anysize network trained on one size each (resumed where a run is there): a row per size."""
+    preset = PRESETS["anysize"]
+    ppo = dataclasses.replace(preset.ppo, balance_sizes=False)  # one size: nothing to balance
+    rows = []
+    for n in SPECIALIST_SIZES:
+        config = dataclasses.replace(
+            preset, scenario=f"paper-{n}", size_curriculum=0, ppo=ppo, episodes=episodes, seeds=seeds
+        )
+        run = folder / f"paper-{n}"
+        train(config, out=run, resume=(run / CONFIG).exists())
+        rows += table(run, eval_episodes, (n,), "anysize specialist")
+    return rows
+
+
+def draw(rows: list[dict[str, object]], path: Path) -> None:
+    """The figure: ``rows`` (the one policy) beside its specialists, the earlier runs and the
+    best per-size rows of the scale sweeps."""
+    others = [r for r in read_table(HERE.parent / "swarm" / "score-vs-n.csv") if r["setting"] in BASELINES]
+    for extra in (SPECIALISTS, *EARLIER):
+        others += read_table(extra) if extra.exists() else []
+    figure(rows + others, path)
 
 
 def stress(run: Path, seeds: int, episodes: int) -> list[dict[str, object]]:
@@ -93,7 +124,8 @@ def stress(run: Path, seeds: int, episodes: int) -> list[dict[str, object]]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--run", type=Path, required=True, help="the training run's folder")
+    parser.add_argument("--run", type=Path, help="the training run's folder")
+    parser.add_argument("--specialists", type=Path, help="train and evaluate the per-size runs in this folder")
     parser.add_argument("--episodes", type=int, default=PRESETS["anysize"].episodes, help="training episodes per seed")
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--eval-episodes", type=int, default=1000)
@@ -103,6 +135,12 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=HERE / "any-size", help="output path without suffix")
     args = parser.parse_args()
     enable_compilation_cache()
+    if args.specialists is not None:
+        write_csv(SPECIALISTS, specialists(args.specialists, 20_000, args.seeds, args.eval_episodes))
+        draw(read_table(args.out.with_suffix(".csv")), args.out.with_suffix(".png"))
+        return
+    if args.run is None:
+        parser.error("give --run (the one policy) or --specialists")
     if not (args.evaluate or args.stress_only):
         config = dataclasses.replace(PRESETS["anysize"], episodes=args.episodes, seeds=args.seeds)
         train(config, out=args.run, resume=(args.run / CONFIG).exists())
@@ -110,9 +148,7 @@ def main() -> None:
         rows = table(args.run, args.eval_episodes)
         write_csv(args.out.with_suffix(".csv"), rows)
         atomic_write(args.out.with_suffix(".md"), lambda f: f.write(markdown(rows)))
-        baselines = [r for r in read_table(HERE.parent / "swarm" / "score-vs-n.csv") if r["setting"] in BASELINES]
-        baselines += [row for path in EARLIER for row in read_table(path)]
-        figure(rows + baselines, args.out.with_suffix(".png"))
+        draw(rows, args.out.with_suffix(".png"))
         print(markdown(rows))
     stressed = stress(args.run, args.seeds, args.stress_episodes)
     write_csv(args.out.with_name(args.out.name + "-stress.csv"), stressed)

@@ -17,7 +17,7 @@ from roverswarm.config import PRESETS, TrainConfig, with_options
 from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
 from roverswarm.limits import read_config
-from roverswarm.runs import CHECKPOINT, CONFIG, METRICS, read_metrics
+from roverswarm.runs import CHECKPOINT, CONFIG, METRICS, budget_spent, read_metrics, training_seconds
 
 ALGORITHMS: dict[str, dict[str, str]] = {
     "ddpg": {"algo": "ddpg", "replay": "uniform"},
@@ -277,7 +277,8 @@ def run_rows(run: GridRun) -> list[dict[str, float]]:
 
 
 def status(run: GridRun) -> Literal["done", "partial", "new"]:
-    """Whether ``run``'s folder holds its finished run, an interrupted one, or nothing.
+    """Whether ``run``'s folder holds its finished run (all its episodes, or its
+    ``--budget-minutes`` spent), an interrupted one, or nothing.
 
     A folder holding a run of other settings is an error (the user chooses: --force or
     another --out), never silently overwritten."""
@@ -290,8 +291,9 @@ def status(run: GridRun) -> Literal["done", "partial", "new"]:
         )
     if not (run.folder / CHECKPOINT).exists():
         return "new"
-    finished = sum(1 for r in run_rows(run) if r["episodes"] == run.config.episodes) == run.config.seeds
-    return "done" if finished else "partial"
+    rows = run_rows(run)
+    finished = sum(1 for r in rows if r["episodes"] == run.config.episodes) == run.config.seeds
+    return "done" if finished or budget_spent(run.config, training_seconds(rows)) else "partial"
 
 
 def episodes_done(run: GridRun) -> int:

@@ -43,12 +43,12 @@ from rich.live import Live
 from roverswarm.config import PRESETS, validate, with_options
 from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
-from roverswarm.experiments.arms import Backend, GridRun, check_backend, status
+from roverswarm.experiments.arms import Backend, GridRun, check_backend, episodes_done, status
 from roverswarm.experiments.live import Summary
 from roverswarm.experiments.pool import default_jobs, train_runs
 from roverswarm.experiments.remote import run_ray
 from roverswarm.limits import check_memory, open_limited, read_limited, safe_name, training_parts
-from roverswarm.runs import METRICS, folder_lock, markdown_table, read_metrics, write_csv
+from roverswarm.runs import METRICS, folder_lock, markdown_table, read_metrics, training_seconds, write_csv
 from roverswarm.storage import atomic_write
 
 EVALUATION = "evaluation.csv"
@@ -163,11 +163,11 @@ def load_sweep(path: Path, out: Path) -> list[GridRun]:
 def evaluation(run: GridRun, episodes: int) -> list[dict[str, object]]:
     """The deterministic evaluation rows of ``run`` (random, oracle, every seed), computed once
     and kept in the run folder: again for other evaluation episodes or once the run has been
-    trained further (extended: ``train --resume RUN --episodes M``)."""
+    trained further (extended: ``train --resume RUN --episodes M`` or ``--budget-minutes``)."""
     from roverswarm.evaluate import evaluate_run
 
     path = run.folder / EVALUATION
-    key = {"episodes": episodes, "trained_episodes": run.config.episodes}
+    key = {"episodes": episodes, "trained_episodes": episodes_done(run)}
     if path.exists():
         rows = read_table(path)
         if all(rows[0].get(k) == v for k, v in key.items()):
@@ -183,11 +183,11 @@ def table_row(run: GridRun, rows: list[dict[str, object]]) -> dict[str, object]:
     seeds = [r for name, r in by_name.items() if name not in ("random", "oracle")]
     scores = np.array([float(r["normalized_score"]) for r in seeds])
     mean = lambda key: float(np.mean([float(r[key]) for r in seeds]))  # noqa: E731
-    minutes = sum(r["wall_seconds"] for r in read_metrics(run.folder / METRICS) if r["seed"] == 0) / 60
+    minutes = training_seconds(read_metrics(run.folder / METRICS)) / 60
     return {
         "scenario": run.scenario,
         "setting": run.algorithm,
-        "episodes": run.config.episodes,
+        "episodes": episodes_done(run),  # fewer than configured where a --budget-minutes ended the run
         "seeds": run.config.seeds,
         "scores": " / ".join(f"{s:.2f}" for s in scores),
         "min_score": float(scores.min()),
