@@ -17,9 +17,10 @@ Last, ``mission stress`` of ``examples/mission.yaml`` for every seed, with and w
 random rover failure, beside the oracle: ``any-size-stress.csv``.
 
 ``--specialists FOLDER`` trains the same network on one size each (``paper-N`` for N in
-:data:`SPECIALIST_SIZES`, no size mixing, 20,000 episodes: about what the one policy sees of
-each of its 9 sizes in 200,000), 5 seeds each, evaluates each at its own size and writes
-``any-size-specialists.csv``; the figure then shows them beside the one policy.
+:data:`SPECIALIST_SIZES`, no size mixing; ``--specialist-episodes``, 20,000 by default: about
+what the one policy sees of each of its 9 sizes in 200,000; more extends the runs), 5 seeds
+each, evaluates each at its own size and writes its rows into ``any-size-specialists.csv``
+(keeping those of other episode counts); the figure then shows them beside the one policy.
 """
 
 from __future__ import annotations
@@ -126,6 +127,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run", type=Path, help="the training run's folder")
     parser.add_argument("--specialists", type=Path, help="train and evaluate the per-size runs in this folder")
+    parser.add_argument("--specialist-episodes", type=int, default=20_000, help="training episodes per specialist")
     parser.add_argument("--episodes", type=int, default=PRESETS["anysize"].episodes, help="training episodes per seed")
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--eval-episodes", type=int, default=1000)
@@ -136,7 +138,9 @@ def main() -> None:
     args = parser.parse_args()
     enable_compilation_cache()
     if args.specialists is not None:
-        write_csv(SPECIALISTS, specialists(args.specialists, 20_000, args.seeds, args.eval_episodes))
+        rows = specialists(args.specialists, args.specialist_episodes, args.seeds, args.eval_episodes)
+        earlier = read_table(SPECIALISTS) if SPECIALISTS.exists() else []
+        write_csv(SPECIALISTS, [r for r in earlier if r["setting"] != rows[0]["setting"]] + rows)
         draw(read_table(args.out.with_suffix(".csv")), args.out.with_suffix(".png"))
         return
     if args.run is None:

@@ -3,12 +3,15 @@
     python docs/results/any-size/probe.py --name lead20k --episodes 20000
     python docs/results/any-size/probe.py --name cur20k --episodes 20000 --set '{"size_curriculum": 10000}'
     python docs/results/any-size/probe.py --name mix25 --episodes 20000 --sizes 2,3,5 --set '{"scenario": "paper-2..5"}'
+    python docs/results/any-size/probe.py --name fail60k --episodes 60000 --stress --set '{"fail_rate": 0.5}'
 
 ``--set`` is JSON: top-level fields of the config, ``learner.*`` and ``ppo.*`` fields. Trains
 into ``--runs/NAME`` (resumed if there), evaluates every seed at ``--sizes`` (300 episodes per
 policy by default, the same layouts for random, the oracle and every seed) and appends one
 line to ``--log``: every seed's normalised score per size, and the mean trap contacts beside
-the oracle's. A probe ranks settings; it is not a result (2 seeds, 300 episodes).
+the oracle's; with ``--stress``, also every seed's success on ``mission stress`` of the example
+mission without and with one rover failure (500 episodes each, beside the oracle's). A probe
+ranks settings; it is not a result (2 seeds, 300 episodes).
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from any_size import stress  # the script beside this one
 
 from roverswarm import train
 from roverswarm.config import PRESETS
@@ -55,11 +59,13 @@ def main() -> None:
     parser.add_argument("--set", default="{}", help="JSON of the changed settings")
     parser.add_argument("--runs", type=Path, default=Path("runs/probes"))
     parser.add_argument("--log", type=Path, default=Path("runs/probes/probes.txt"))
+    parser.add_argument("--stress", action="store_true", help="also mission stress of the example mission")
     args = parser.parse_args()
     enable_compilation_cache()
     out = args.runs / args.name
     start = time.time()
-    train(configured(json.loads(args.set), args.episodes, args.seeds), out=out, resume=(out / CONFIG).exists(), progress=False)
+    config = configured(json.loads(args.set), args.episodes, args.seeds)
+    train(config, out=out, resume=(out / CONFIG).exists(), progress=False)
     minutes = (time.time() - start) / 60
     sizes: dict[str, dict] = {}
     for row in evaluate_run(out, args.eval_episodes, scenario="paper-" + args.sizes):
@@ -72,6 +78,11 @@ def main() -> None:
     line = f"{args.name} ({args.episodes} ep, {minutes:.1f} min): " + " | ".join(
         f"{n}: {'/'.join(s['scores'])} tr {np.mean(s['traps']):.1f} ({s['oracle_traps']:.1f})" for n, s in sizes.items()
     )
+    if args.stress:
+        success: dict[str, list[str]] = {}
+        for row in stress(out, args.seeds, 500):
+            success.setdefault(str(row["condition"]), []).append(f"{row['success']:.2f}")  # every seed, then the oracle
+        line += " || stress " + "; ".join(f"{c}: {'/'.join(v[:-1])} (oracle {v[-1]})" for c, v in success.items())
     print(line)
     args.log.parent.mkdir(parents=True, exist_ok=True)
     with open(args.log, "a") as log:
