@@ -170,9 +170,16 @@ def test_bad_any_size_options_name_the_field(options, pattern):
         validate(with_options(ANYSIZE, options))
 
 
-@pytest.mark.parametrize("options", [{"network": "entity"}, {"fail_rate": 0.1}, {"stop_when_complete": True}])
-def test_the_off_policy_family_refuses_entity_networks_failures_and_stops_for_now(options):
-    with pytest.raises(UserError, match="only the flat view's networks, no failures and fixed-length episodes"):
+@pytest.mark.parametrize(
+    "options, option",
+    [
+        ({"network": "entity"}, "--network entity"),
+        ({"fail_rate": 0.1}, "--fail-rate 0.1"),
+        ({"stop_when_complete": True}, "--stop-when-complete"),
+    ],
+)
+def test_the_off_policy_family_refuses_entity_networks_failures_and_stops_for_now(options, option):
+    with pytest.raises(UserError, match=f"^{option}: --algo maddpg has only the flat view's networks, no failures"):
         validate(with_options(TrainConfig(), options))
 
 

@@ -84,12 +84,17 @@ def check(config, params: EnvParams) -> None:
     range and compose; else :class:`UserError` naming the option."""
     learner, replay = config.learner, config.buffer
     steps = config.num_envs * params.max_steps
-    require(
-        learner.network == "mlp" and config.fail_rate == 0 and not config.stop_when_complete,
-        f"--network {learner.network} / --fail-rate {config.fail_rate} / --stop-when-complete "
-        f"{config.stop_when_complete}: --algo {learner.algo} has only the flat view's networks, no failures and "
-        "fixed-length episodes yet; use --algo mappo or ippo (--preset anysize)",
-    )
+    unsupported = {
+        f"--network {learner.network}": learner.network != "mlp",
+        f"--fail-rate {config.fail_rate}": config.fail_rate > 0,
+        "--stop-when-complete": config.stop_when_complete,
+    }
+    for option, given in unsupported.items():
+        require(
+            not given,
+            f"{option}: --algo {learner.algo} has only the flat view's networks, no failures and fixed-length "
+            "episodes yet; use --algo mappo or ippo (--preset anysize)",
+        )
     require(replay.replay in ("uniform", "ranked"), f"--replay must be 'uniform' or 'ranked', got '{replay.replay}'")
     require(replay.reading in ("paper", "schaul"), f"--reading must be 'paper' or 'schaul', got '{replay.reading}'")
     require(replay.alpha >= 0, f"--alpha must be >= 0, got {replay.alpha}")
