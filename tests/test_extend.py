@@ -143,19 +143,34 @@ def test_a_run_ends_at_its_budget_and_a_larger_budget_continues_it(
 ):
     """On a clock where every chunk takes 30 s, --budget-minutes 1 ends a 400-episode run after
     two chunks (200 episodes, with its replay), which a sweep counts as done; resuming it with
-    the spent budget is one line and exit 2; --budget-minutes 2 then continues it to the
+    the spent budget is one line and exit 2 and changes nothing in the folder; --budget-minutes
+    1.5 adds one chunk (the minutes count over both sessions); 2 then continues it to the
     numbers of the run trained at once."""
     config = tiny_config if family == "maddpg" else tiny_ppo_config
     config = dataclasses.replace(config, episodes=4 * config.log_every, budget_minutes=1.0)
     clock = iter(range(0, 10_000, 30))
     monkeypatch.setattr(trainer, "time", SimpleNamespace(perf_counter=lambda: next(clock), monotonic=time.monotonic))
+
+    def trained() -> int:
+        with np.load(tmp_path / CHECKPOINT) as data:
+            return int(data["episodes"])
+
     train(config, out=tmp_path, progress=False)
+    assert trained() == 2 * config.log_every
     with np.load(tmp_path / CHECKPOINT) as data:
-        assert int(data["episodes"]) == 2 * config.log_every
         assert any(k.startswith("buffer/") for k in data.files) == (family == "maddpg")
     assert status(GridRun("paper-2", family, config, tmp_path)) == "done"  # a sweep keeps it as it is
-    assert main(["train", "--resume", str(tmp_path)]) == 2
-    assert "the run has spent its budget (1.0 of --budget-minutes 1)" in capsys.readouterr().err
+    files = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    before = {name: (tmp_path / name).read_bytes() for name in ("config.json", "metrics.csv")}
+    for more in ([], ["--episodes", "800"]):
+        capsys.readouterr()
+        assert main(["train", "--resume", str(tmp_path), *more]) == 2
+        err = capsys.readouterr().err
+        assert "the run has spent its budget (1.0 of --budget-minutes 1)" in err and err.count("\n") == 1, err
+    assert {name: (tmp_path / name).read_bytes() for name in before} == before
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == files
+    assert main(["train", "--resume", str(tmp_path), "--budget-minutes", "1.5"]) == 0
+    assert trained() == 3 * config.log_every
     assert main(["train", "--resume", str(tmp_path), "--budget-minutes", "2"]) == 0
     at_once = train(dataclasses.replace(config, budget_minutes=0.0), progress=False)
     assert timeless(read_metrics(tmp_path / "metrics.csv")) == timeless(at_once.metrics)

@@ -50,7 +50,8 @@ class TrainCommand:
     """Output folder (config.json, metrics.csv, tb/, checkpoint.npz, learning_curve.png)."""
     resume: Path | None = None
     """Continue the interrupted run in this folder with its own config; with --episodes M,
-    extend it (finished or not) to M episodes per seed (docs/training.md#extending-a-run)."""
+    extend it (finished or not) to M episodes per seed (docs/training.md#extending-a-run), with
+    a larger --budget-minutes, continue a run its budget ended."""
 
 
 @dataclass(frozen=True)

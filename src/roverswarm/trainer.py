@@ -93,11 +93,13 @@ def train(
     With ``out``, writes there: ``config.json``, ``metrics.csv`` (one row per seed per
     ``log_every`` episodes), TensorBoard events in ``tb/``, ``checkpoint.npz`` and
     ``learning_curve.png``. ``resume=True`` continues from ``out``'s checkpoint and gives the
-    same numbers as an unbroken run; ``config`` is the run's own but for ``episodes``, which
-    may grow to extend a finished or interrupted run (docs/training.md#extending-a-run). Same
-    config => identical metrics. ``on_chunk(episodes)`` is called after every chunk (e.g. to
-    draw a summary of many runs instead of the bar); if it returns true, the run stops there
-    as on Ctrl-C (a checkpoint, then :class:`~roverswarm.errors.RunStopped`).
+    same numbers as an unbroken run; ``config`` is the run's own but for ``episodes`` and
+    ``budget_minutes``, which may grow to extend a finished or interrupted run
+    (docs/training.md#extending-a-run); a budget ends a run early
+    (docs/training.md#a-wall-time-budget). Same config => identical metrics.
+    ``on_chunk(episodes)`` is called after every chunk (e.g. to draw a summary of many runs
+    instead of the bar); if it returns true, the run stops there as on Ctrl-C (a checkpoint,
+    then :class:`~roverswarm.errors.RunStopped`).
     """
     if config.mission is not None:  # kept absolute and with its content: resume and evaluate need not find the file
         config = with_mission_text(config)
@@ -156,8 +158,9 @@ def _check_replay_fits(config: TrainConfig, params: EnvParams) -> None:
 
 def _check_resumable(config: TrainConfig, out: Path) -> None:
     """``out`` holds a run trained with ``config`` but for its episodes and budget (:data:`RESUME_CHANGES`),
-    which may grow to extend it, never below what the checkpoint has trained; else
-    :class:`UserError`."""
+    which may grow to extend it, never below what the checkpoint has trained, and whose budget
+    is not spent unless it is finished; else :class:`UserError` (before anything is loaded or
+    written)."""
     checkpoint = out / CHECKPOINT
     require(
         checkpoint.exists() and (out / CONFIG).exists(),
@@ -180,6 +183,13 @@ def _check_resumable(config: TrainConfig, out: Path) -> None:
         config.episodes >= done,
         f"--episodes {config.episodes} is below the {done} episodes this run has trained per seed; a run is "
         f"extended, never shortened: give --episodes >= {done}",
+    )
+    rows = read_metrics(out / METRICS) if done and (out / METRICS).exists() else []  # else refused below
+    spent = training_seconds([r for r in rows if r["episodes"] <= done])
+    require(
+        done == config.episodes or not budget_spent(config, spent),
+        f"--resume: the run has spent its budget ({spent / 60:.1f} of --budget-minutes {config.budget_minutes:g}); "
+        "give a larger --budget-minutes to continue it",
     )
 
 
@@ -221,11 +231,6 @@ def _train(
     chunks = config.episodes // config.log_every
     first = int(runner.episodes) // config.log_every
     spent = training_seconds(rows)
-    require(
-        not budget_spent(config, spent) or first == chunks,
-        f"--resume: the run has spent its budget ({spent / 60:.1f} of --budget-minutes {config.budget_minutes:g}); "
-        "give a larger --budget-minutes to continue it",
-    )
     bar = Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
