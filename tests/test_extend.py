@@ -9,12 +9,14 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from rich.console import Console
 
 from roverswarm import trainer
 from roverswarm.cli import main
 from roverswarm.config import with_options
 from roverswarm.errors import RunStopped
 from roverswarm.experiments.arms import GridRun, status
+from roverswarm.experiments.live import Summary
 from roverswarm.learners import FAMILIES
 from roverswarm.runs import CHECKPOINT, read_metrics
 from roverswarm.trainer import train
@@ -159,7 +161,11 @@ def test_a_run_ends_at_its_budget_and_a_larger_budget_continues_it(
     assert trained() == 2 * config.log_every
     with np.load(tmp_path / CHECKPOINT) as data:
         assert any(k.startswith("buffer/") for k in data.files) == (family == "maddpg")
-    assert status(GridRun("paper-2", family, config, tmp_path)) == "done"  # a sweep keeps it as it is
+    run = GridRun("paper-2", family, config, tmp_path)
+    assert status(run) == "done"  # a sweep keeps it as it is, and its live table says how far it went
+    console = Console(record=True, width=100)
+    console.print(Summary([run], {run.name}))
+    assert f"{2 * config.log_every}/{config.episodes}" in console.export_text()
     files = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
     before = {name: (tmp_path / name).read_bytes() for name in ("config.json", "metrics.csv")}
     for more in ([], ["--episodes", "800"]):

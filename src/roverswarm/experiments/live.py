@@ -6,7 +6,7 @@ import time
 
 from rich.table import Table
 
-from roverswarm.experiments.arms import GridRun
+from roverswarm.experiments.arms import GridRun, episodes_done
 
 
 class Summary:
@@ -15,6 +15,7 @@ class Summary:
     def __init__(self, runs: list[GridRun], done: set[str]):
         self.runs = runs
         self.done = set(done)
+        self.ended = {r.name: episodes_done(r) for r in runs if r.name in self.done}  # fewer after a budget
         self.running: dict[str, int] = {}
         self.started = time.perf_counter()
         self.trained = 0  # seed-episodes trained by this command (for the time estimate)
@@ -27,6 +28,7 @@ class Summary:
     def finish(self, run: GridRun) -> None:
         self.running.pop(run.name, None)
         self.done.add(run.name)
+        self.ended[run.name] = episodes_done(run)
 
     def __rich__(self) -> Table:
         left = [r for r in self.runs if r.name not in self.done]
@@ -42,6 +44,6 @@ class Summary:
             table.add_column(column)
         for r in self.runs:
             state = "done" if r.name in self.done else ("running" if r.name in self.running else "queued")
-            episodes = r.config.episodes if state == "done" else self.running.get(r.name, 0)
+            episodes = self.ended[r.name] if state == "done" else self.running.get(r.name, 0)
             table.add_row(r.name, state, f"{episodes}/{r.config.episodes}")
         return table
