@@ -32,7 +32,7 @@ from roverswarm.env.scenarios import get_scenario, range_sizes
 from roverswarm.errors import UserError, require
 from roverswarm.learners import learner_family, offpolicy
 from roverswarm.runs import CHECKPOINT, Run, folder_lock
-from roverswarm.storage import atomic_write, read_arrays
+from roverswarm.storage import atomic_write, trained_episodes
 
 CHECK_OBSERVATIONS = 256
 """Swarm observations of random layouts on which every export is checked against JAX."""
@@ -279,7 +279,7 @@ def export_run(run_folder: str | Path, out: str | Path, seed: int = 0) -> Export
     _onnx()
     run, out = Run(run_folder), Path(out)
     config = run.config
-    done = int(read_arrays(run.folder / CHECKPOINT, "episodes").get("episodes", 0))
+    done = trained_episodes(run.folder / CHECKPOINT)
     require(
         done >= config.episodes,
         f"'{run.folder}' is not a finished run: its checkpoint holds {done} of {config.episodes} episodes; "

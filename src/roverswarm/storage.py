@@ -118,6 +118,11 @@ def read_arrays(path: Path, prefix: str = "") -> dict[str, np.ndarray]:
         raise UserError(f"'{path}' cannot be read ({error}); it is truncated or not a roverswarm checkpoint") from error
 
 
+def trained_episodes(path: Path) -> int:
+    """Episodes per seed the checkpoint ``path`` has trained (0 for one that never counted them)."""
+    return int(read_arrays(path, "episodes").get("episodes", 0))
+
+
 def load_checkpoint(path: Path, template, buffer=None):
     """Read a runner written by :func:`save_checkpoint` into the structure of ``template``.
 

@@ -41,7 +41,7 @@ from roverswarm.runs import (
     training_seconds,
     write_csv,
 )
-from roverswarm.storage import atomic_write, checkpoint_changes, load_checkpoint, read_arrays, save_checkpoint
+from roverswarm.storage import atomic_write, checkpoint_changes, load_checkpoint, save_checkpoint, trained_episodes
 
 # ----------------------------------------------------------------------------- host loop
 
@@ -178,7 +178,7 @@ def _check_resumable(config: TrainConfig, out: Path) -> None:
         f"--resume: '{out / CONFIG}' was edited since its checkpoint was written ({', '.join(edited)}); "
         "restore the values the run was trained with, or start a new run",
     )
-    done = int(read_arrays(checkpoint, "episodes").get("episodes", 0))
+    done = trained_episodes(checkpoint)
     require(
         config.episodes >= done,
         f"--episodes {config.episodes} is below the {done} episodes this run has trained per seed; a run is "

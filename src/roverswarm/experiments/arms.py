@@ -18,7 +18,7 @@ from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
 from roverswarm.limits import read_config
 from roverswarm.runs import CHECKPOINT, CONFIG, METRICS, budget_spent, read_metrics, training_seconds
-from roverswarm.storage import read_arrays
+from roverswarm.storage import trained_episodes
 
 ALGORITHMS: dict[str, dict[str, str]] = {
     "ddpg": {"algo": "ddpg", "replay": "uniform"},
@@ -292,7 +292,7 @@ def status(run: GridRun) -> Literal["done", "partial", "new"]:
         )
     if not (run.folder / CHECKPOINT).exists():
         return "new"
-    done = int(read_arrays(run.folder / CHECKPOINT, "episodes").get("episodes", 0))
+    done = trained_episodes(run.folder / CHECKPOINT)
     rows = [r for r in run_rows(run) if r["episodes"] <= done]  # metrics.csv is written just before a checkpoint
     finished = sum(1 for r in rows if r["episodes"] == run.config.episodes) == run.config.seeds
     return "done" if finished or budget_spent(run.config, training_seconds(rows)) else "partial"
