@@ -218,8 +218,9 @@ def gapped(x: list[int], y: list[float]) -> tuple[list[float], list[float]]:
 
 
 def figure(rows: list[dict[str, object]], path: Path) -> None:
-    """Left: every seed's score (dots) and their mean (line) per scenario, one colour per
-    setting, beside random (0) and the oracle (1). Right: minutes of training per run."""
+    """Left: every seed's score (dots) and their mean (line; dotted across scenarios a setting
+    skipped) per scenario, one colour per setting, beside random (0) and the oracle (1).
+    Right: minutes of training per run."""
     from matplotlib.figure import Figure
 
     scenarios = list(dict.fromkeys(str(r["scenario"]) for r in rows))
@@ -229,7 +230,10 @@ def figure(rows: list[dict[str, object]], path: Path) -> None:
         mine = [r for r in rows if r["setting"] == setting]
         x = [scenarios.index(str(r["scenario"])) for r in mine]
         scores = [[float(v) for v in str(r["scores"]).split(" / ")] for r in mine]
-        (line,) = ax.plot(*gapped(x, [np.mean(v) for v in scores]), marker="o", label=setting)
+        means = [float(np.mean(v)) for v in scores]
+        (line,) = ax.plot(*gapped(x, means), marker="o", label=setting)
+        if len(gapped(x, means)[0]) > len(x):  # a scenario skipped: bridge it with a dotted line
+            ax.plot(*zip(*sorted(zip(x, means))), linestyle=":", linewidth=1, color=line.get_color())
         for xi, v in zip(x, scores):
             ax.scatter([xi] * len(v), v, s=12, color=line.get_color(), alpha=0.5)
         clock.plot(*gapped(x, [float(r["train_minutes"]) for r in mine]), marker="o", color=line.get_color())
