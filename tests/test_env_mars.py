@@ -129,6 +129,28 @@ def test_pois_are_observed_within_the_observe_radius_and_stay_observed():
     assert int(info["pois_observed"]) == 1  # it stays observed after leaving
 
 
+def test_pois_first_observed_counts_each_poi_at_the_step_a_rover_first_reaches_it(paper3):
+    """info["pois_first_observed"] against NumPy: a POI counts once, at the first step after
+    which a rover's centre is within the observe radius of it (not if it was at the reset)."""
+    params = paper3.replace(observe_radius=0.15)
+    step_jit = jax.jit(step_env)
+    for seed in range(4):
+        _, state = reset(jax.random.PRNGKey(seed), params)
+        pois = np.asarray(state.poi_pos)
+        seen = np.asarray(state.observed).copy()
+        counts, expected = [], []
+        for _ in range(params.max_steps):  # rover i heads for POI i, overshooting now and then
+            actions = jnp.clip(3.0 * (state.poi_pos - state.rover_pos), -1.0, 1.0)
+            _, state, _, _, _, info = step_jit(state, actions, params)
+            near = np.linalg.norm(np.asarray(state.rover_pos)[:, None] - pois[None], axis=-1) < params.observe_radius
+            now = near.any(axis=0)
+            expected.append(int(np.sum(now & ~seen)))
+            seen |= now
+            counts.append(int(info["pois_first_observed"]))
+        assert counts == expected
+        assert sum(counts) >= 1 and int(info["pois_observed"]) == int(seen.sum())
+
+
 # ----------------------------------------------------------------------------- episodes
 
 

@@ -486,3 +486,34 @@ def test_trap_shaping_trains_on_a_heavier_trap_penalty_and_reports_the_environme
         np.testing.assert_allclose(trained[-1][name], plain[-1][name], rtol=1e-6)
     with pytest.raises(UserError, match="--trap-shaping must be a finite number >= 0, got -1"):
         validate(with_options(config, {"trap_shaping": -1.0}))
+
+
+@pytest.mark.parametrize("algo", ["maddpg", "mappo"])
+def test_observe_bonus_pays_every_rover_for_each_poi_first_observed(algo, tiny_config, tiny_ppo_config):
+    """--observe-bonus b: the learner's rewards exceed the environment's by b times the POIs
+    first observed at that step (the same for every rover: at most one payment per POI and
+    episode); the episode rewards it reports are the environment's."""
+    import roverswarm.learners.onpolicy as onpolicy
+    from roverswarm.algos import ppo
+    from roverswarm.algos.learner import init_learner
+    from roverswarm.env import observation_size
+
+    config = dataclasses.replace(tiny_config if algo == "maddpg" else tiny_ppo_config, num_envs=25)
+    params = validate(config).replace(observe_radius=0.3)  # wide sight: many POIs observed
+    sizes = (params.num_rovers, observation_size(params))
+    if algo == "maddpg":
+        learner = init_learner(jax.random.PRNGKey(0), config.learner, *sizes)
+        run = lambda c: offpolicy.collect(c, params, learner, jax.random.PRNGKey(1), 0.3)  # noqa: E731
+    else:
+        actor = ppo.init_ppo(jax.random.PRNGKey(0), config, *sizes).actor
+        run = lambda c: onpolicy.collect(c, params, actor, jax.random.PRNGKey(1))  # noqa: E731
+    plain, paid = run(config), run(with_options(config, {"observe_bonus": 2.5}))
+    first = (np.asarray(paid[0].rewards) - np.asarray(plain[0].rewards)) / 2.5  # [T, E, N]
+    np.testing.assert_allclose(first, np.round(first), atol=1e-4)
+    np.testing.assert_allclose(first, first[..., :1] + 0 * first, atol=1e-4)  # every rover alike
+    per_episode = np.round(first[..., 0]).sum(axis=0)  # [E]
+    assert per_episode.min() >= 0 and per_episode.max() <= params.num_pois and per_episode.sum() >= 5
+    for name in ("episode_reward", "agent_rewards"):
+        np.testing.assert_allclose(paid[-1][name], plain[-1][name], rtol=1e-6)
+    with pytest.raises(UserError, match="--observe-bonus must be a finite number >= 0, got -1"):
+        validate(with_options(config, {"observe_bonus": -1.0}))

@@ -30,11 +30,14 @@ def contact_counts(info: dict[str, jax.Array]) -> dict[str, jax.Array]:
     return {"collisions": jnp.sum(info["collisions"], -1) / 2, "trap_contacts": jnp.sum(info["trap_contacts"], -1)}
 
 
-def shaped_rewards(rewards: jax.Array, info: dict[str, jax.Array], trap_shaping: float) -> jax.Array:
+def shaped_rewards(
+    rewards: jax.Array, info: dict[str, jax.Array], trap_shaping: float, observe_bonus: float
+) -> jax.Array:
     """The rewards a learner trains on: the environment's ``rewards`` [..., N] less
-    ``trap_shaping`` more per trap each rover touches (``--trap-shaping``). Episode rewards,
-    metrics and evaluations stay the environment's."""
-    return rewards - trap_shaping * info["trap_contacts"]
+    ``trap_shaping`` more per trap each rover touches (``--trap-shaping``), plus
+    ``observe_bonus`` for every rover per POI first observed at the step (``--observe-bonus``).
+    Episode rewards, metrics and evaluations stay the environment's."""
+    return rewards - trap_shaping * info["trap_contacts"] + observe_bonus * info["pois_first_observed"][..., None]
 
 
 def step_stats(rewards: jax.Array, info: dict[str, jax.Array], live: jax.Array | None = None) -> dict[str, jax.Array]:

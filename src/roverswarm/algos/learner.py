@@ -102,6 +102,11 @@ class AlgoConfig:
     """Reward shaping: the learner trains on the environment's reward less this much more per
     trap a rover touches per step (the environment charges 1); what it reports, and every
     evaluation, stays the environment's reward. MADDPG, DDPG, MAPPO and IPPO."""
+    observe_bonus: float = 0.0
+    """Reward shaping: the learner trains on the environment's reward plus this much for every
+    rover each time a POI is observed for the first time in the episode (a reason to visit
+    every POI, not only to cover them); reports and evaluations stay the environment's
+    reward. MADDPG, DDPG, MAPPO and IPPO."""
 
 
 @struct.dataclass

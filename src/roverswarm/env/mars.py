@@ -310,8 +310,9 @@ def step_env(
 
     Returns ``(obs [N, O], state, rewards [N], terminated [], truncated [], info)`` where info
     holds ``collisions`` [N] (other rovers touched), ``trap_contacts`` [N] (traps touched),
-    ``coverage_distance`` [] (sum over POIs of the nearest rover's distance) and
-    ``pois_observed`` [] (POIs observed so far this episode).
+    ``coverage_distance`` [] (sum over POIs of the nearest rover's distance),
+    ``pois_observed`` [] (POIs observed so far this episode) and ``pois_first_observed`` []
+    (POIs observed for the first time at this step).
     """
     check_actions(actions, params)
     masks = masks_of(state)
@@ -326,6 +327,7 @@ def step_env(
     pos = jnp.where(frozen[:, None], state.rover_pos, pos)
     vel = jnp.where(frozen[:, None], 0.0, vel)
     state = state.replace(rover_pos=pos, rover_vel=vel, time=state.time + 1)
+    seen_before = jnp.sum(state.observed)
     state = state.replace(observed=_observed_now(state, params))
 
     rover_dist = _pairwise_dist(pos, pos)
@@ -350,6 +352,7 @@ def step_env(
         "trap_contacts": trap_contacts,
         "coverage_distance": coverage,
         "pois_observed": jnp.sum(state.observed),
+        "pois_first_observed": jnp.sum(state.observed) - seen_before,
     }
     return observe(state, params), state, rewards, terminated, truncated, info
 
