@@ -1,8 +1,10 @@
 """Compiled programs are released: the suite and long grids rely on it to stay under Linux's
-limit of memory mappings per process."""
+limit of memory mappings per process. The on-disk cache keeps every program, the smallest too."""
 
 from __future__ import annotations
 
+import os
+import subprocess
 import sys
 
 import jax
@@ -31,3 +33,17 @@ def test_released_programs_give_back_their_memory_mappings(monkeypatch):
     monkeypatch.setattr(jaxcache, "CROWDED", before + grown // 2)  # now crowded: released
     release_compiled_programs(only_if_crowded=True)
     assert memory_mappings() - before < grown / 4
+
+
+def test_the_disk_cache_keeps_even_the_quickest_program(tmp_path):
+    """A one-addition program (compiled in milliseconds) is written to the cache: a warm run
+    loads the small programs too instead of compiling them again."""
+    script = (
+        "import jax, jax.numpy as jnp\n"
+        "from roverswarm.jaxcache import enable_compilation_cache\n"
+        "enable_compilation_cache()\n"
+        "jax.jit(lambda x: x + 1)(jnp.zeros(3)).block_until_ready()\n"
+    )
+    env = {**os.environ, "ROVERSWARM_JAX_CACHE": str(tmp_path)}
+    subprocess.run([sys.executable, "-c", script], env=env, check=True, timeout=120)
+    assert any(name.startswith("jit__lambda") for name in os.listdir(tmp_path)), os.listdir(tmp_path)
