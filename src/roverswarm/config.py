@@ -140,17 +140,19 @@ IPPO = dataclasses.replace(MAPPO, learner=dataclasses.replace(MAPPO.learner, alg
 ANYSIZE = dataclasses.replace(
     MAPPO,
     scenario="paper-2..10",
-    episodes=200_000,
+    episodes=250_000,
     size_curriculum=15_000,
     learner=dataclasses.replace(MAPPO.learner, network="nearest", entity_nearest=4, hidden=(128, 128)),
-    ppo=dataclasses.replace(MAPPO.ppo, balance_sizes=True),
+    ppo=dataclasses.replace(MAPPO.ppo, balance_sizes=True, anneal_episodes=250_000),
 )
 """One policy for every swarm size: MAPPO whose 2 x 128 actor and value see each rover's 4
 nearest other rovers, POIs and traps (nearest first, no rover ids; a POI's token carries the
 rover's lead on it), trained on swarms of 2 to 10 rovers, a size drawn per episode, the
 largest size drawn growing from 2 to 10 over the first 15,000 episodes, each episode weighing
-the same in the loss whatever its size (``--balance-sizes``); 200,000 episodes, about 50
-minutes for 5 seeds on 2 cores (``docs/results/any-size/``). Attention over the entities
+the same in the loss whatever its size (``--balance-sizes``); 250,000 episodes, the learning
+rates decaying linearly to 0 over them (``--anneal-episodes``: give it with ``--episodes``,
+or the rates stop short of 0 or reach it early), about 65 minutes for 5 seeds on 2 cores
+(``docs/results/any-size/``). Attention over the entities
 (``--network entity``) is the other encoder; one update cost 13 to 43 times as much here
 (docs/results/any-size/README.md), too slow for a 5-seed run so far."""
 

@@ -18,9 +18,12 @@ random rover failure, beside the oracle: ``any-size-stress.csv``.
 
 ``--specialists FOLDER`` trains the same network on one size each (``paper-N`` for N in
 :data:`SPECIALIST_SIZES`, no size mixing; ``--specialist-episodes``, 20,000 by default: about
-what the one policy sees of each of its 9 sizes in 200,000; more extends the runs), 5 seeds
-each, evaluates each at its own size and writes its rows into ``any-size-specialists.csv``
-(keeping those of other episode counts); the figure then shows them beside the one policy.
+what the one policy sees of each of its 9 sizes in 200,000), 5 seeds each, the learning rates
+annealed over those episodes as the preset's are over its own (so a run is not extended to
+more: give each episode count a folder of its own), evaluates each at its own size and writes
+its rows into ``any-size-specialists.csv`` (keeping those of other episode counts); the
+figure then shows them beside the one policy. The committed specialists trained with
+constant learning rates (20,000 episodes, then extended to 60,000).
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from roverswarm import train
-from roverswarm.config import PRESETS
+from roverswarm.config import PRESETS, TrainConfig
 from roverswarm.evaluate import evaluate_run
 from roverswarm.experiments.sweep import figure, markdown, read_table
 from roverswarm.jaxcache import enable_compilation_cache
@@ -43,9 +46,10 @@ HERE = Path(__file__).resolve().parent
 SIZES = (2, 3, 4, 5, 6, 7, 8, 9, 10, 12, 16, 20, 32)
 BASELINES = {"swarm (60k)", "swarm-ddpg (60k)", "mappo (40k)"}
 """The best per-size rows of today (one network per size), from the scale sweeps."""
-EARLIER = (HERE / "any-size-v1.csv", HERE / "any-size-v2.csv")
+EARLIER = (HERE / "any-size-v1.csv", HERE / "any-size-v2.csv", HERE / "any-size-v3.csv")
 """The earlier anysize runs' rows, kept beside the new: the first (20,000 episodes, no POI lead,
-no curriculum) and the second (60,000 episodes, 2 x 64 networks, no sample balance)."""
+no curriculum), the second (60,000 episodes, 2 x 64 networks, no sample balance) and the third
+(200,000 episodes, constant learning rates)."""
 SPECIALIST_SIZES = (2, 3, 5, 8, 10)
 SPECIALISTS = HERE / "any-size-specialists.csv"
 
@@ -86,15 +90,19 @@ def table(run: Path, episodes: int, sizes=SIZES, setting: str = "anysize") -> li
     return rows
 
 
+def anysize(episodes: int, seeds: int, **ppo_changes) -> TrainConfig:
+    """The anysize preset for ``episodes`` per seed, its learning rates annealed over them."""
+    preset = PRESETS["anysize"]
+    ppo = dataclasses.replace(preset.ppo, anneal_episodes=episodes, **ppo_changes)
+    return dataclasses.replace(preset, episodes=episodes, seeds=seeds, ppo=ppo)
+
+
 def specialists(folder: Path, episodes: int, seeds: int, eval_episodes: int) -> list[dict[str, object]]:
     """The anysize network trained on one size each (resumed where a run is there): a row per size."""
-    preset = PRESETS["anysize"]
-    ppo = dataclasses.replace(preset.ppo, balance_sizes=False)  # one size: nothing to balance
     rows = []
     for n in SPECIALIST_SIZES:
-        config = dataclasses.replace(
-            preset, scenario=f"paper-{n}", size_curriculum=0, ppo=ppo, episodes=episodes, seeds=seeds
-        )
+        one_size = anysize(episodes, seeds, balance_sizes=False)  # one size: nothing to balance
+        config = dataclasses.replace(one_size, scenario=f"paper-{n}", size_curriculum=0)
         run = folder / f"paper-{n}"
         train(config, out=run, resume=(run / CONFIG).exists())
         rows += table(run, eval_episodes, (n,), "anysize specialist")
@@ -146,8 +154,7 @@ def main() -> None:
     if args.run is None:
         parser.error("give --run (the one policy) or --specialists")
     if not (args.evaluate or args.stress_only):
-        config = dataclasses.replace(PRESETS["anysize"], episodes=args.episodes, seeds=args.seeds)
-        train(config, out=args.run, resume=(args.run / CONFIG).exists())
+        train(anysize(args.episodes, args.seeds), out=args.run, resume=(args.run / CONFIG).exists())
     if not args.stress_only:
         rows = table(args.run, args.eval_episodes)
         write_csv(args.out.with_suffix(".csv"), rows)

@@ -23,26 +23,24 @@ import time
 from pathlib import Path
 
 import numpy as np
-from any_size import stress  # the script beside this one
+from any_size import anysize, stress  # the script beside this one
 
 from roverswarm import train
-from roverswarm.config import PRESETS
 from roverswarm.evaluate import evaluate_run
 from roverswarm.jaxcache import enable_compilation_cache
 from roverswarm.runs import CONFIG
 
 
 def configured(overrides: dict, episodes: int, seeds: int):
-    """The anysize preset with ``overrides`` (``learner.x`` / ``ppo.x`` / top-level names)."""
-    base = PRESETS["anysize"]
+    """The anysize preset for ``episodes`` (its learning rates annealed over them) with
+    ``overrides`` (``learner.x`` / ``ppo.x`` / top-level names)."""
+    base = anysize(episodes, seeds)
     top = {k: v for k, v in overrides.items() if "." not in k}
     part = lambda prefix: {  # noqa: E731
         k.split(".", 1)[1]: tuple(v) if isinstance(v, list) else v for k, v in overrides.items() if k.startswith(prefix)
     }
     return dataclasses.replace(
         base,
-        episodes=episodes,
-        seeds=seeds,
         **top,
         learner=dataclasses.replace(base.learner, **part("learner.")),
         ppo=dataclasses.replace(base.ppo, **part("ppo.")),
