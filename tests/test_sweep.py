@@ -94,6 +94,32 @@ def test_a_rerun_keeps_finished_runs(finished, monkeypatch):
     sweep(config, live=False)
 
 
+def test_a_sweep_of_more_episodes_extends_its_finished_runs_and_refuses_fewer(finished, tmp_path):
+    """The sweep file's episodes raised: the finished run is resumed to the new length (as
+    `train --resume RUN --episodes M`), its table row says so; lowered: one line, nothing trained."""
+    import shutil
+
+    from roverswarm.storage import trained_episodes
+
+    config, _ = finished
+    out = shutil.copytree(config.out, tmp_path / "out")
+
+    def sweep_of(episodes):
+        spec = {"preset": "default", "scenarios": ["paper-2"], "seeds": 2, "episodes": episodes}
+        spec["settings"] = {"mappo": {"preset": "mappo", **TINY_PPO}}
+        (tmp_path / "sweep.yaml").write_text(yaml.safe_dump(spec))
+        return SweepConfig(tmp_path / "sweep.yaml", out, eval_episodes=50)
+
+    longer = sweep_of(600)
+    (run,) = load_sweep(longer.file, out)
+    assert trained_episodes(run.folder / "checkpoint.npz") == 400
+    sweep(longer, live=False)
+    assert trained_episodes(run.folder / "checkpoint.npz") == 600
+    assert [r["episodes"] for r in read_table(out / "sweep.csv")] == [600]
+    with pytest.raises(UserError, match=r"other settings \(600 episodes, more than 400\)"):
+        sweep(sweep_of(400), live=False)
+
+
 def test_an_evaluation_is_kept_until_the_run_is_trained_further(finished, tmp_path, monkeypatch):
     """A run's evaluation.csv serves the same evaluation episodes of the same training length;
     a run trained further since (extended by `train --resume RUN --episodes M`), or a table

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Literal
 
-from roverswarm.config import PRESETS, TrainConfig, with_options
+from roverswarm.config import PRESETS, TrainConfig, resumed_config, with_options
 from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
 from roverswarm.limits import read_config
@@ -140,9 +140,9 @@ class ReproduceConfig(Backend):
     policy (default 1000; 200 with --quick)."""
     keep_programs: bool = False
     """Keep every run's compiled programs in memory until the command ends (released anyway
-    past 20,000 memory mappings): faster for grids of tiny runs, whose programs are mostly too
-    quick to compile for the on-disk cache to keep them; peak memory grows with the runs (the
-    quick grid 2.1 GB instead of 0.9 GB)."""
+    past 20,000 memory mappings): faster for grids of tiny runs, which would otherwise reload
+    many small programs; peak memory grows with the runs (the quick grid 2.1 GB instead of
+    0.9 GB)."""
 
     @property
     def grid_seeds(self) -> int:
@@ -279,16 +279,25 @@ def run_rows(run: GridRun) -> list[dict[str, float]]:
 
 def status(run: GridRun) -> Literal["done", "partial", "new"]:
     """Whether ``run``'s folder holds its finished run (all its episodes, or its
-    ``--budget-minutes`` spent), an interrupted one, or nothing.
+    ``--budget-minutes`` spent), an interrupted one, or nothing. A run of fewer episodes or
+    another budget, its settings otherwise the same, is one to extend: "partial" until it
+    has trained the episodes asked (or spent the budget), as ``train --resume`` would extend it.
 
-    A folder holding a run of other settings is an error (the user chooses: --force or
-    another --out), never silently overwritten."""
+    A folder holding a run of other settings, or of more episodes, is an error (the user
+    chooses: --force or another --out), never silently overwritten."""
     if not (run.folder / CONFIG).exists():
         return "new"
     saved = read_config(run.folder / CONFIG)
-    if saved != run.config:
+    try:
+        resumed_config(run.config, saved)  # the settings a resume may not change are the same
+        differs = ""
+    except UserError as e:
+        differs = " (" + str(e).removeprefix("--resume: ") + ")"
+    if differs or saved.episodes > run.config.episodes:
+        longer = "" if differs else f" ({saved.episodes} episodes, more than {run.config.episodes})"
         raise UserError(
-            f"'{run.folder}' holds a run with other settings; rerun with --force to replace it, or choose another --out"
+            f"'{run.folder}' holds a run with other settings{differs or longer}; rerun with --force to replace it, "
+            "or choose another --out"
         )
     if not (run.folder / CHECKPOINT).exists():
         return "new"
