@@ -234,7 +234,9 @@ def test_one_policy_learns_two_sizes_and_beats_random_by_a_wide_margin(tmp_path)
     """The anysize preset on paper-2..3 (its curriculum and annealing shortened): every seed
     beats random by a wide margin at both sizes, and at paper-4, which it never trained on."""
     preset = with_options(ANYSIZE, {"anneal_episodes": 3000})
-    config = dataclasses.replace(preset, scenario="paper-2..3", episodes=3000, size_curriculum=1000, seeds=2, num_envs=40)
+    config = dataclasses.replace(
+        preset, scenario="paper-2..3", episodes=3000, size_curriculum=1000, seeds=2, num_envs=40
+    )
     train(config, out=tmp_path, progress=False)
     rows = evaluate_run(tmp_path, episodes=300, scenario="paper-2,3,4")
     scores = {(r["scenario"], r["policy"]): r["normalized_score"] for r in rows if r["policy"].startswith("mappo")}
