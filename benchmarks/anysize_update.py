@@ -130,8 +130,10 @@ def ref_update(config, state: PPOState, batch: Batch):
 def anysize_config(n: int):
     """The ``anysize`` preset on ``paper-N``: (on-policy config, environment params)."""
     preset = PRESETS["anysize"]
-    # one size: --balance-sizes (weights of largest size / N, here all 1) needs a range
-    ppo = dataclasses.replace(preset.ppo, balance_sizes=False)
+    # one size: --balance-sizes (weights of largest size / N, here all 1) needs a range; the
+    # reference's Adam has a constant rate (the preset's annealing scales the step by one
+    # number per update: the same cost)
+    ppo = dataclasses.replace(preset.ppo, balance_sizes=False, anneal_episodes=0)
     run = dataclasses.replace(preset, scenario=f"paper-{n}", size_curriculum=0, ppo=ppo)
     params = validate(run)
     config = configure(run, params)
