@@ -16,8 +16,13 @@ Rollouts add ``pois_observed`` (POIs a rover came within ``observe_radius`` of a
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import jax
 import jax.numpy as jnp
+
+if TYPE_CHECKING:
+    from roverswarm.algos.learner import AlgoConfig
 
 EPISODE_METRICS = ("episode_reward", "collisions", "trap_contacts", "coverage_distance")
 """The scalar per-episode totals a training run logs, in ``metrics.csv``'s order (after the
@@ -30,14 +35,13 @@ def contact_counts(info: dict[str, jax.Array]) -> dict[str, jax.Array]:
     return {"collisions": jnp.sum(info["collisions"], -1) / 2, "trap_contacts": jnp.sum(info["trap_contacts"], -1)}
 
 
-def shaped_rewards(
-    rewards: jax.Array, info: dict[str, jax.Array], trap_shaping: float, observe_bonus: float
-) -> jax.Array:
+def shaped_rewards(rewards: jax.Array, info: dict[str, jax.Array], learner: AlgoConfig) -> jax.Array:
     """The rewards a learner trains on: the environment's ``rewards`` [..., N] less
-    ``trap_shaping`` more per trap each rover touches (``--trap-shaping``), plus
-    ``observe_bonus`` for every rover per POI first observed at the step (``--observe-bonus``).
-    Episode rewards, metrics and evaluations stay the environment's."""
-    return rewards - trap_shaping * info["trap_contacts"] + observe_bonus * info["pois_first_observed"][..., None]
+    ``learner.trap_shaping`` more per trap each rover touches (``--trap-shaping``), plus
+    ``learner.observe_bonus`` for every rover per POI first observed at the step
+    (``--observe-bonus``). Episode rewards, metrics and evaluations stay the environment's."""
+    bonus = learner.observe_bonus * info["pois_first_observed"][..., None]
+    return rewards - learner.trap_shaping * info["trap_contacts"] + bonus
 
 
 def step_stats(rewards: jax.Array, info: dict[str, jax.Array], live: jax.Array | None = None) -> dict[str, jax.Array]:

@@ -27,7 +27,7 @@ from roverswarm.learners import learner_family
 from roverswarm.limits import check_memory, evaluation_parts, open_limited, read_config
 from roverswarm.metrics import EPISODE_METRICS, reduce_metric
 from roverswarm.policies import REFERENCE_POLICIES, Policy, mixed_policy, trained_policy
-from roverswarm.storage import atomic_write, read_arrays, restore
+from roverswarm.storage import atomic_write, read_arrays, restore, trained_episodes
 
 CHECKPOINT = "checkpoint.npz"
 CONFIG = "config.json"
@@ -123,6 +123,14 @@ def training_seconds(rows: list[dict[str, float]]) -> float:
     """Wall seconds a run has trained, over all its sessions: the sum of its metrics rows'
     ``wall_seconds`` (each chunk's time for all seeds, so one seed's rows)."""
     return sum(r["wall_seconds"] for r in rows if r["seed"] == 0)
+
+
+def checkpointed_rows(folder: Path) -> tuple[int, list[dict[str, float]]]:
+    """The episodes per seed ``folder``'s checkpoint has trained and the ``metrics.csv`` rows up
+    to them (the file is written just before a checkpoint, so it may run one chunk ahead)."""
+    done = trained_episodes(folder / CHECKPOINT)
+    rows = read_metrics(folder / METRICS) if done and (folder / METRICS).exists() else []
+    return done, [r for r in rows if r["episodes"] <= done]
 
 
 def budget_spent(config: TrainConfig, seconds: float) -> bool:

@@ -34,14 +34,14 @@ from roverswarm.runs import (
     CONFIG,
     METRICS,
     budget_spent,
+    checkpointed_rows,
     folder_lock,
     metric_rows,
     plot_learning_curve,
-    read_metrics,
     training_seconds,
     write_csv,
 )
-from roverswarm.storage import atomic_write, checkpoint_changes, load_checkpoint, save_checkpoint, trained_episodes
+from roverswarm.storage import atomic_write, checkpoint_changes, load_checkpoint, save_checkpoint
 
 # ----------------------------------------------------------------------------- host loop
 
@@ -178,14 +178,13 @@ def _check_resumable(config: TrainConfig, out: Path) -> None:
         f"--resume: '{out / CONFIG}' was edited since its checkpoint was written ({', '.join(edited)}); "
         "restore the values the run was trained with, or start a new run",
     )
-    done = trained_episodes(checkpoint)
+    done, rows = checkpointed_rows(out)
     require(
         config.episodes >= done,
         f"--episodes {config.episodes} is below the {done} episodes this run has trained per seed; a run is "
         f"extended, never shortened: give --episodes >= {done}",
     )
-    rows = read_metrics(out / METRICS) if done and (out / METRICS).exists() else []  # else refused below
-    spent = training_seconds([r for r in rows if r["episodes"] <= done])
+    spent = training_seconds(rows)
     require(
         done == config.episodes or not budget_spent(config, spent),
         f"--resume: the run has spent its budget ({spent / 60:.1f} of --budget-minutes {config.budget_minutes:g}); "
@@ -212,8 +211,7 @@ def _train(
     if out is not None:
         if resume:
             runner = load_checkpoint(out / CHECKPOINT, runner, family.replay_buffer(program, params))
-            done = int(runner.episodes)
-            rows = [r for r in read_metrics(out / METRICS) if r["episodes"] <= done] if (out / METRICS).exists() else []
+            done, rows = checkpointed_rows(out)
             require(
                 len(rows) == done // config.log_every * config.seeds,
                 f"--resume: '{out / METRICS}' is missing or lacks rows of the {done} episodes in the checkpoint; "

@@ -329,6 +329,7 @@ def step_env(
     state = state.replace(rover_pos=pos, rover_vel=vel, time=state.time + 1)
     seen_before = jnp.sum(state.observed)
     state = state.replace(observed=_observed_now(state, params))
+    seen = jnp.sum(state.observed)
 
     rover_dist = _pairwise_dist(pos, pos)
     touching = (rover_dist < 2 * params.rover_radius) & ~jnp.eye(params.num_rovers, dtype=bool)
@@ -351,8 +352,8 @@ def step_env(
         "collisions": collisions,
         "trap_contacts": trap_contacts,
         "coverage_distance": coverage,
-        "pois_observed": jnp.sum(state.observed),
-        "pois_first_observed": jnp.sum(state.observed) - seen_before,
+        "pois_observed": seen,
+        "pois_first_observed": seen - seen_before,
     }
     return observe(state, params), state, rewards, terminated, truncated, info
 

@@ -17,8 +17,15 @@ from roverswarm.config import PRESETS, TrainConfig, resumed_config, with_options
 from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
 from roverswarm.limits import read_config
-from roverswarm.runs import CHECKPOINT, CONFIG, METRICS, budget_spent, read_metrics, training_seconds
-from roverswarm.storage import trained_episodes
+from roverswarm.runs import (
+    CHECKPOINT,
+    CONFIG,
+    METRICS,
+    budget_spent,
+    checkpointed_rows,
+    read_metrics,
+    training_seconds,
+)
 
 ALGORITHMS: dict[str, dict[str, str]] = {
     "ddpg": {"algo": "ddpg", "replay": "uniform"},
@@ -290,19 +297,18 @@ def status(run: GridRun) -> Literal["done", "partial", "new"]:
     saved = read_config(run.folder / CONFIG)
     try:
         resumed_config(run.config, saved)  # the settings a resume may not change are the same
-        differs = ""
+        longer = saved.episodes > run.config.episodes
+        reason = f"{saved.episodes} episodes, more than {run.config.episodes}" if longer else ""
     except UserError as e:
-        differs = " (" + str(e).removeprefix("--resume: ") + ")"
-    if differs or saved.episodes > run.config.episodes:
-        longer = "" if differs else f" ({saved.episodes} episodes, more than {run.config.episodes})"
+        reason = str(e).removeprefix("--resume: ")
+    if reason:
         raise UserError(
-            f"'{run.folder}' holds a run with other settings{differs or longer}; rerun with --force to replace it, "
+            f"'{run.folder}' holds a run with other settings ({reason}); rerun with --force to replace it, "
             "or choose another --out"
         )
     if not (run.folder / CHECKPOINT).exists():
         return "new"
-    done = trained_episodes(run.folder / CHECKPOINT)
-    rows = [r for r in run_rows(run) if r["episodes"] <= done]  # metrics.csv is written just before a checkpoint
+    _, rows = checkpointed_rows(run.folder)
     finished = sum(1 for r in rows if r["episodes"] == run.config.episodes) == run.config.seeds
     return "done" if finished or budget_spent(run.config, training_seconds(rows)) else "partial"
 

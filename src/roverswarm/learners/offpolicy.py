@@ -234,7 +234,7 @@ def collect(config: OffPolicyConfig, params: EnvParams, learner: LearnerState, k
         next_obs, next_state, rewards, terminated, _, info = jax.vmap(step_env, in_axes=(0, 0, None))(
             state, actions, params
         )
-        learned = shaped_rewards(rewards, info, config.learner.trap_shaping, config.learner.observe_bonus)
+        learned = shaped_rewards(rewards, info, config.learner)
         stored = (compact.rovers_of(state), actions, learned, terminated)
         return (next_obs, next_state), (stored, obs, step_stats(rewards, info))
 

@@ -166,7 +166,7 @@ def collect(
     ``episode_reward``, ``agent_rewards`` [E, N], ``collisions``, ``trap_contacts`` and
     ``coverage_distance`` (at the last step).
     """
-    nets, shaping = policy_networks(config.learner, config.ppo), config.learner
+    nets = policy_networks(config.learner, config.ppo)
     observe_all = jax.vmap(nets.observe, in_axes=(0, None))
     params = training_params(config, params)
     k_reset, k_steps = jax.random.split(key)
@@ -187,7 +187,7 @@ def collect(
             obs=obs,
             actions=actions,
             log_probs=gaussian_log_prob(actions, mean, log_std),
-            rewards=shaped_rewards(rewards, info, shaping.trap_shaping, shaping.observe_bonus) * live[:, None],
+            rewards=shaped_rewards(rewards, info, config.learner) * live[:, None],
             next_obs=next_obs,
             terminated=terminated & live,
             truncated=truncated & live,
