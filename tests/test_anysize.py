@@ -13,6 +13,7 @@ import pytest
 
 from roverswarm import train
 from roverswarm.algos import ppo
+from roverswarm.algos.ppo_networks import flat_tokens, swarm_tokens
 from roverswarm.config import ANYSIZE, TrainConfig, validate, with_options
 from roverswarm.env import get_scenario, reset
 from roverswarm.env.entities import LEAD, TOKEN_FEATURES, nearest_entities, observe_entities
@@ -65,7 +66,9 @@ def test_mixed_sizes_mask_the_rovers_that_do_not_exist(tiny_anysize):
     # live step of every episode weighs the same in the loss, whatever its size
     live = np.asarray(traj.mask)[..., None] * exists  # [T, E, N]
     made = {
-        balance: make_batch(dataclasses.replace(config, ppo=dataclasses.replace(config.ppo, balance_sizes=balance)), state, traj)
+        balance: make_batch(
+            dataclasses.replace(config, ppo=dataclasses.replace(config.ppo, balance_sizes=balance)), state, traj
+        )
         for balance in (False, True)
     }
     for balance, weight in ((False, 1.0), (True, params.num_rovers / sizes[None, :, None])):
@@ -123,8 +126,11 @@ def test_the_entity_policy_is_permutation_equivariant(anysize_run):
     act = lambda s: np.asarray(policy.act(None, None, s, None, policy.weights, params))  # noqa: E731
     rovers, pois, traps = (np.random.default_rng(i).permutation(6) for i in range(3))
     shuffled = state.replace(
-        rover_pos=state.rover_pos[rovers], rover_vel=state.rover_vel[rovers], poi_pos=state.poi_pos[pois],
-        observed=state.observed[pois], trap_pos=state.trap_pos[traps],
+        rover_pos=state.rover_pos[rovers],
+        rover_vel=state.rover_vel[rovers],
+        poi_pos=state.poi_pos[pois],
+        observed=state.observed[pois],
+        trap_pos=state.trap_pos[traps],
     )
     np.testing.assert_allclose(act(shuffled), act(state)[rovers], atol=1e-5)
     assert np.abs(act(state)).sum() > 0
@@ -163,6 +169,7 @@ def test_a_flat_policy_refuses_another_size(tiny_ppo_config, tmp_path, capsys):
         ({"size_curriculum": 100, "scenario": "paper-3"}, "--size-curriculum needs a range"),
         ({"balance_sizes": True, "size_curriculum": 0, "scenario": "paper-3"}, "--balance-sizes needs a range"),
         ({"entity_heads": 3, "entity_dim": 8}, "must be >= 1 and divide --entity-dim"),
+        ({"swarm_value": True, "algo": "ippo"}, "--swarm-value is MAPPO's centralised value over --network nearest"),
     ],
 )
 def test_bad_any_size_options_name_the_field(options, pattern):
@@ -214,6 +221,21 @@ def _padded_state(key: int, active: int = 4):
     return params, *step_env(state, actions, params)[1:]
 
 
+def test_the_swarm_value_sees_the_mean_of_the_rovers_that_exist_in_any_order():
+    """--swarm-value's input against NumPy: each rover's own flat view, then the mean of the
+    existing rovers' (4 of 6 slots) and 4 / 10; reordering the rovers reorders the rows only."""
+    params, state, *_ = _padded_state(30)
+    view = nearest_entities(observe_entities(state, params), params, 3)
+    flat, inputs = np.asarray(flat_tokens(view)), np.asarray(swarm_tokens(view))
+    width = flat.shape[-1]
+    swarm = np.concatenate([flat[:4].mean(axis=0), [0.4]])
+    np.testing.assert_allclose(inputs[:, :width], flat)
+    np.testing.assert_allclose(inputs[:4, width:], np.broadcast_to(swarm, (4, width + 1)), atol=1e-6)
+    order = np.array([2, 0, 5, 3, 1, 4])
+    shuffled = jax.tree.map(lambda x: x[order], view)
+    np.testing.assert_allclose(np.asarray(swarm_tokens(shuffled)), inputs[order], atol=1e-6)
+
+
 def test_a_pois_lead_matches_a_plain_loop():
     """A POI token's lead is the nearest other working rover's distance less the rover's own: a
     failed rover (rover 1 here) and the empty slots never count."""
@@ -248,6 +270,8 @@ def test_a_size_agnostic_run_drives_a_mission_of_another_size(anysize_run, tmp_p
     paper-2..4, with and without a rover failure."""
     from roverswarm.mission import stress_mission
 
-    rows = stress_mission(Path(__file__).parents[1] / "examples" / "survey.yaml", str(anysize_run), tmp_path, episodes=20)
+    rows = stress_mission(
+        Path(__file__).parents[1] / "examples" / "survey.yaml", str(anysize_run), tmp_path, episodes=20
+    )
     assert {r["condition"] for r in rows} == {"no failure", "one rover fails"}
     assert all(0 <= r["success"] <= 1 for r in rows)

@@ -98,6 +98,10 @@ class PPOConfig:
     """With mixed swarm sizes: weight each rover's samples by (largest size) / (its swarm's
     size) in the loss, so that every episode counts the same whatever its size (unweighted, a
     swarm of 10 gives 5 times the samples of a swarm of 2)."""
+    swarm_value: bool = False
+    """MAPPO with ``--network nearest``: the value sees the whole swarm besides the rover's own
+    view (the mean of every rover's view and the swarm's size), a centralised value for any
+    size; off, the value sees what the actor sees."""
 
 
 @dataclass(frozen=True)

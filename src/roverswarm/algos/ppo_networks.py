@@ -14,7 +14,8 @@ Shape legend: N rovers, O flat observation size, A action size (2), M entity tok
   (``--entity-nearest K``), nearest first within each type, as one vector of fixed width
   (empty slots zero, with the mask), read by the flat view's MLPs. Sorting makes it
   permutation-invariant and the width does not depend on N: another encoder for any swarm
-  size, a fraction of attention's cost.
+  size, a fraction of attention's cost. Its value sees the actor's input, or with
+  ``--swarm-value`` (MAPPO) also the swarm's mean of it and the swarm's size (:func:`swarm_tokens`).
 
 Both are Gaussian policies with a learned, state-independent log-std (``log_std`` [A]).
 """
@@ -185,22 +186,37 @@ def flat_tokens(view) -> jax.Array:
     return jnp.concatenate([view.own, flat, view.mask.astype(flat.dtype)], axis=-1)
 
 
+def swarm_tokens(view) -> jax.Array:
+    """``--swarm-value``: each rover's flat view (:func:`flat_tokens`) [..., N, W] followed by the
+    swarm's: the mean of its rovers' flat views and its size / 10, [..., N, 2 W + 1]. The same
+    under any order of the rovers and for any size; rows of rovers that do not exist (all
+    tokens masked) count in neither."""
+    own = flat_tokens(view)
+    exists = jnp.any(view.mask, axis=-1, keepdims=True).astype(own.dtype)  # [..., N, 1]
+    count = jnp.sum(exists, axis=-2, keepdims=True)  # [..., 1, 1]
+    mean = jnp.sum(own * exists, axis=-2, keepdims=True) / jnp.maximum(count, 1.0)
+    swarm = jnp.concatenate([mean, count / 10.0], axis=-1)
+    return jnp.concatenate([own, jnp.broadcast_to(swarm, (*own.shape[:-1], swarm.shape[-1]))], axis=-1)
+
+
 def _nearest_kind(learner: AlgoConfig, config: Any) -> PolicyNetworks:
     actor_net, critic_net = networks(learner, config)
     k = learner.entity_nearest
+    critic_inputs = swarm_tokens if config.swarm_value else flat_tokens
 
     def view(state, params):
         return nearest_entities(observe_entities(state, params), params, k)
 
     def init(key, num_rovers, obs_size):
         k_actor, k_critic = jax.random.split(key)
-        x = jnp.zeros((OWN_FEATURES + 3 * k * (TOKEN_FEATURES + 1),))
-        return actor_net.init(k_actor, x), critic_net.init(k_critic, x)
+        width = OWN_FEATURES + 3 * k * (TOKEN_FEATURES + 1)
+        critic_width = 2 * width + 1 if config.swarm_value else width
+        return actor_net.init(k_actor, jnp.zeros((width,))), critic_net.init(k_critic, jnp.zeros((critic_width,)))
 
     return PolicyNetworks(
         observe=view,
         actor_inputs=flat_tokens,
-        critic_inputs=flat_tokens,
+        critic_inputs=critic_inputs,
         init=init,
         policy=actor_net.apply,
         value=lambda params, inputs: critic_net.apply(params, inputs)[..., 0],

@@ -96,6 +96,11 @@ def check(config, params: EnvParams) -> None:
         require_finite(getattr(ppo, name), 0, name.replace("_", "-"))
     require(ppo.anneal_episodes >= 0, f"--anneal-episodes must be >= 0, got {ppo.anneal_episodes}")
     require(ppo.activation in ("tanh", "relu"), f"--activation must be 'tanh' or 'relu', got '{ppo.activation}'")
+    require(
+        not ppo.swarm_value or (config.learner.network == "nearest" and config.learner.algo == "mappo"),
+        f"--swarm-value is MAPPO's centralised value over --network nearest; got --algo {config.learner.algo} "
+        f"--network {config.learner.network}",
+    )
 
 
 def configure(config, params: EnvParams) -> OnPolicyConfig:
