@@ -158,9 +158,10 @@ def make_batch(key, config, params, steps: int) -> Batch:
             env = step_env(env, actions, params)[1]
         return nets.observe(env, params)
 
-    views = jax.jit(jax.vmap(rollout))(jax.random.split(k_reset, envs), jax.random.split(k_act, envs))
-    views = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), views)  # [B, ...]: one per rover
-    inputs = nets.actor_inputs(views)  # [B, 136]
+    views = jax.jit(jax.vmap(rollout))(jax.random.split(k_reset, envs), jax.random.split(k_act, envs))  # [E, N, ...]
+    per_rover = lambda x: x.reshape(-1, *x.shape[2:])  # noqa: E731  [E, N, ...] -> [B, ...]: one per rover
+    inputs = per_rover(nets.actor_inputs(views))  # [B, 148]
+    critic_inputs = per_rover(nets.critic_inputs(views))  # [B, 297]: the swarm's part from its own rovers
     size = inputs.shape[0]
     state = init_ppo(k_state, config, params.num_rovers, observation_size(params))
     mean, log_std = nets.policy(state.actor, inputs)
@@ -168,7 +169,7 @@ def make_batch(key, config, params, steps: int) -> Batch:
     log_probs = gaussian_log_prob(actions, mean, log_std) + 0.1 * jax.random.normal(k_old, (size,))
     return Batch(
         actor_inputs=inputs,
-        critic_inputs=nets.critic_inputs(views),
+        critic_inputs=critic_inputs,
         actions=actions,
         log_probs=log_probs,
         advantages=jax.random.normal(k_adv, (size,)),

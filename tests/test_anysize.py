@@ -16,7 +16,7 @@ from roverswarm.algos import ppo
 from roverswarm.algos.ppo_networks import flat_tokens, swarm_tokens
 from roverswarm.config import ANYSIZE, TrainConfig, validate, with_options
 from roverswarm.env import get_scenario, reset
-from roverswarm.env.entities import LEAD, TOKEN_FEATURES, nearest_entities, observe_entities
+from roverswarm.env.entities import CLAIM, LEAD, TOKEN_FEATURES, nearest_entities, observe_entities
 from roverswarm.env.mars import step_env
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
@@ -28,7 +28,14 @@ from roverswarm.runs import Run
 def tiny_anysize():
     """The anysize preset with attention over every entity, shrunk: sizes 2 to 4, small
     networks, few episodes."""
-    options = {"network": "entity", "entity_nearest": 0, "entity_dim": 8, "entity_heads": 2, "entity_layers": 1}
+    options = {
+        "network": "entity",
+        "swarm_value": False,
+        "entity_nearest": 0,
+        "entity_dim": 8,
+        "entity_heads": 2,
+        "entity_layers": 1,
+    }
     return dataclasses.replace(
         with_options(ANYSIZE, {**options, "hidden": (16,), "epochs": 2, "minibatches": 2}),
         scenario="paper-2..4",
@@ -249,6 +256,29 @@ def test_a_pois_lead_matches_a_plain_loop():
         for j, token in enumerate(poi_tokens):
             mine, theirs = np.linalg.norm(pos[i] - pois[j]), np.linalg.norm(others - pois[j], axis=-1).min()
             assert token[LEAD] == pytest.approx(np.clip(theirs - mine, -2, 2), abs=1e-5)
+
+
+def test_a_pois_claim_lead_matches_a_plain_loop():
+    """A POI token's claim lead: the nearest of the other working rovers whose nearest existing
+    POI it is, their distance less the rover's own (+2 where none claims it); a failed rover
+    (rover 2) and the empty slots never count."""
+    params, state, *_ = _padded_state(21)
+    state = state.replace(fail_step=state.fail_step.at[2].set(0))
+    pos, pois = np.asarray(state.rover_pos)[:4], np.asarray(state.poi_pos)[:4]
+    view = observe_entities(state, params)
+    claimed = set()
+    for i in range(4):
+        poi_tokens = np.asarray(view.tokens[i])[np.asarray(view.mask[i])][3:7]
+        for j, token in enumerate(poi_tokens):
+            rivals = [
+                np.linalg.norm(pos[k] - pois[j])
+                for k in range(4)
+                if k not in (i, 2) and np.argmin(np.linalg.norm(pois - pos[k], axis=-1)) == j
+            ]
+            expected = min(rivals) - np.linalg.norm(pos[i] - pois[j]) if rivals else 2.0
+            claimed.update([j] if rivals else [])
+            assert token[CLAIM] == pytest.approx(np.clip(expected, -2, 2), abs=1e-5)
+    assert 0 < len(claimed) < 4  # some POIs claimed, some free: both cases are checked
 
 
 @pytest.mark.slow

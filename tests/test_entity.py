@@ -71,13 +71,14 @@ def permute_world(world: dict, rovers: np.ndarray, pois: np.ndarray, traps: np.n
 
 
 def entity_view(world: dict, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """own [N, 4], tokens [N, M, 10], mask [N, M] of ``world``, written from the definition;
+    """own [N, 4], tokens [N, M, 11], mask [N, M] of ``world``, written from the definition;
     every padded slot (an inactive entity's token, an inactive rover's own row) is garbage."""
     n, p, t = len(world["rover_pos"]), len(world["poi_pos"]), len(world["trap_pos"])
     own = np.zeros((n, OWN_FEATURES), np.float32)
     tokens = np.zeros((n, n - 1 + p + t, TOKEN_FEATURES), np.float32)
     mask = np.zeros((n, n - 1 + p + t), bool)
     garbage = lambda size: rng.normal(0, 50, size)  # noqa: E731
+    poi_gaps = lambda k: np.linalg.norm(world["poi_pos"] - world["rover_pos"][k], axis=-1)  # noqa: E731
     for i in range(n):
         pos, vel = world["rover_pos"][i], world["rover_vel"][i]
         own[i] = np.concatenate([vel, pos]) if world["rover_on"][i] else garbage(OWN_FEATURES)
@@ -85,16 +86,19 @@ def entity_view(world: dict, rng: np.random.Generator) -> tuple[np.ndarray, np.n
         for j in range(n):
             if j != i:
                 rel = [*(world["rover_pos"][j] - pos), *(world["rover_vel"][j] - vel)]
-                rows.append((rel + [1, 0, 0, RADII["rover"], world["failed"][j], 0], world["rover_on"][j]))
+                rows.append((rel + [1, 0, 0, RADII["rover"], world["failed"][j], 0, 0], world["rover_on"][j]))
         for j in range(p):
             rel = [*(world["poi_pos"][j] - pos), 0, 0]
             gap = lambda k: np.linalg.norm(world["rover_pos"][k] - world["poi_pos"][j])  # noqa: E731
-            others = [gap(k) for k in range(n) if k != i and world["rover_on"][k] and not world["failed"][k]]
-            lead = np.clip(min(others, default=np.inf) - gap(i), -2, 2)  # the nearest other working rover's less mine
-            rows.append((rel + [0, 1, 0, RADII["poi"], world["observed"][j], lead], world["poi_on"][j]))
+            others = [k for k in range(n) if k != i and world["rover_on"][k] and not world["failed"][k]]
+            lead = np.clip(min(map(gap, others), default=np.inf) - gap(i), -2, 2)  # the nearest other's less mine
+            nearest = lambda k: np.argmin(np.where(world["poi_on"], poi_gaps(k), np.inf))  # noqa: E731
+            claims = [gap(k) for k in others if nearest(k) == j]  # the others whose nearest POI it is
+            claim = np.clip(min(claims, default=np.inf) - gap(i), -2, 2)
+            rows.append((rel + [0, 1, 0, RADII["poi"], world["observed"][j], lead, claim], world["poi_on"][j]))
         for j in range(t):
             rel = [*(world["trap_pos"][j] - pos), 0, 0]
-            rows.append((rel + [0, 0, 1, RADII["trap"], 0, 0], world["trap_on"][j]))
+            rows.append((rel + [0, 0, 1, RADII["trap"], 0, 0, 0], world["trap_on"][j]))
         for k, (features, on) in enumerate(rows):
             tokens[i, k] = features if on else garbage(TOKEN_FEATURES)
             mask[i, k] = on
@@ -102,7 +106,7 @@ def entity_view(world: dict, rng: np.random.Generator) -> tuple[np.ndarray, np.n
 
 
 def stack_views(worlds: list[dict], rng: np.random.Generator) -> tuple[np.ndarray, ...]:
-    """own [B, N, 4], tokens [B, N, M, 10], mask [B, N, M] of equally laid out worlds."""
+    """own [B, N, 4], tokens [B, N, M, 11], mask [B, N, M] of equally laid out worlds."""
     return tuple(np.stack(parts) for parts in zip(*(entity_view(w, rng) for w in worlds)))
 
 
@@ -447,7 +451,9 @@ def test_networks_first_made_inside_a_trace_serve_later_calls():
     from roverswarm.config import ANYSIZE, validate, with_options
     from roverswarm.limits import network_bytes
 
-    config = with_options(ANYSIZE, {"network": "entity", "entity_dim": 8, "entity_heads": 2, "hidden": (8,)})
+    config = with_options(
+        ANYSIZE, {"network": "entity", "swarm_value": False, "entity_dim": 8, "entity_heads": 2, "hidden": (8,)}
+    )
     policy_networks.cache_clear()
     assert network_bytes(config, validate(config)) > 0  # traces the networks' sizes first
     actor, value = policy_networks(config.learner, config.ppo).init(jax.random.PRNGKey(0), 3, 0)

@@ -48,7 +48,14 @@ def tiny(base: TrainConfig, options: dict, scenario: str) -> TrainConfig:
     return dataclasses.replace(options, scenario=scenario, episodes=100, log_every=100, num_envs=4, seeds=2)
 
 
-ENTITY = {"network": "entity", "entity_nearest": 0, "entity_dim": 8, "entity_heads": 2, "entity_layers": 2}
+ENTITY = {
+    "network": "entity",
+    "swarm_value": False,
+    "entity_nearest": 0,
+    "entity_dim": 8,
+    "entity_heads": 2,
+    "entity_layers": 2,
+}
 KINDS = {  # every actor kind: per-rover and shared off-policy actors, the on-policy mlp, entity and nearest
     "maddpg": tiny(TrainConfig(), {"hidden": (16, 16), "layer_norm": True, "normalize_obs": True}, "paper-2"),
     "ddpg-shared": tiny(SWARM, {"algo": "ddpg", "hidden": (16,), "normalize_obs": True}, "paper-3"),

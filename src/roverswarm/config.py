@@ -143,11 +143,12 @@ ANYSIZE = dataclasses.replace(
     episodes=250_000,
     size_curriculum=15_000,
     learner=dataclasses.replace(MAPPO.learner, network="nearest", entity_nearest=4, hidden=(128, 128)),
-    ppo=dataclasses.replace(MAPPO.ppo, balance_sizes=True, anneal_episodes=250_000),
+    ppo=dataclasses.replace(MAPPO.ppo, balance_sizes=True, anneal_episodes=250_000, swarm_value=True),
 )
 """One policy for every swarm size: MAPPO whose 2 x 128 actor and value see each rover's 4
 nearest other rovers, POIs and traps (nearest first, no rover ids; a POI's token carries the
-rover's lead on it), trained on swarms of 2 to 10 rovers, a size drawn per episode, the
+rover's lead and claim lead on it), the value also the whole swarm's mean view and size
+(``--swarm-value``), trained on swarms of 2 to 10 rovers, a size drawn per episode, the
 largest size drawn growing from 2 to 10 over the first 15,000 episodes, each episode weighing
 the same in the loss whatever its size (``--balance-sizes``); 250,000 episodes, the learning
 rates decaying linearly to 0 over them (``--anneal-episodes``: give it with ``--episodes``,

@@ -14,10 +14,11 @@ in the map's frame (x, y), as the environment's.
   rover (index order, skipping itself), or, with ``nearest_first``, each of those three
   groups ordered nearest first.
 * Entity view (:func:`observe_entities`): ``own`` [N, 4] (velocity, position), ``tokens``
-  [N, M, 10] with M = (N - 1) + P + T, one per other rover, POI and trap in that order, each
-  ``[dx, dy, dvx, dvy, is_rover, is_poi, is_trap, radius, flag, lead]`` relative to the rover
-  (flag: a rover has failed, a POI has been observed this episode; lead, of a POI: the nearest
-  other working rover's distance to it less this rover's, clipped to +-2), and ``mask`` [N, M] bool
+  [N, M, 11] with M = (N - 1) + P + T, one per other rover, POI and trap in that order, each
+  ``[dx, dy, dvx, dvy, is_rover, is_poi, is_trap, radius, flag, lead, claim]`` relative to the
+  rover (flag: a rover has failed, a POI has been observed this episode; lead, of a POI: the
+  nearest other working rover's distance to it less this rover's, clipped to +-2; claim: the
+  same against only the other working rovers whose nearest POI it is), and ``mask`` [N, M] bool
   (every token here is a real entity). :func:`nearest_entities` cuts it to the K nearest of each type.
 
 Only swarms whose every rover, POI and trap exists are described here (no padded slots):
@@ -30,7 +31,7 @@ import numpy as np
 
 OWN_FEATURES = ("vx", "vy", "x", "y")
 """The own features of the entity view, in order."""
-TOKEN_FEATURES = ("dx", "dy", "dvx", "dvy", "is_rover", "is_poi", "is_trap", "radius", "flag", "lead")
+TOKEN_FEATURES = ("dx", "dy", "dvx", "dvy", "is_rover", "is_poi", "is_trap", "radius", "flag", "lead", "claim")
 """The features of one entity token, in order."""
 
 
@@ -68,14 +69,28 @@ def poi_leads(rover_pos: np.ndarray, poi_pos: np.ndarray, working: np.ndarray) -
     clipped to +-:data:`LEAD_CAP` (+LEAD_CAP for a rover with no working other). ``working``
     [N] bool: the rovers that have not failed."""
     dist = np.sqrt(np.sum(np.square(rover_pos[:, None] - poi_pos[None]), axis=-1))
-    present = np.where(working[:, None], dist, np.inf)
-    others = np.where(np.eye(len(rover_pos), dtype=bool)[:, :, None], np.inf, present[None])
+    return _lead(dist, np.where(working[:, None], dist, np.inf))
+
+
+def _lead(dist: np.ndarray, rivals: np.ndarray) -> np.ndarray:
+    """[N, P] the nearest other rover's distance to each POI in ``rivals`` (inf: no rival)
+    less each rover's own ``dist``, clipped to +-:data:`LEAD_CAP`."""
+    others = np.where(np.eye(len(dist), dtype=bool)[:, :, None], np.inf, rivals[None])
     return np.clip(np.min(others, axis=1, initial=np.inf) - dist, -LEAD_CAP, LEAD_CAP).astype(np.float32)
 
 
-def _tokens(rel_pos: np.ndarray, rel_vel, kind: int, radius, flag, lead=0.0) -> np.ndarray:
-    """[N, K, 10] tokens of one type from positions [N, K, 2] and velocities (None: they never
-    move) relative to the rover, the type (0 rover, 1 POI, 2 trap), radius, flag and lead."""
+def poi_claims(rover_pos: np.ndarray, poi_pos: np.ndarray, working: np.ndarray) -> np.ndarray:
+    """[N, P] the claim lead: as :func:`poi_leads`, against only the other working rovers whose
+    nearest POI it is (the first on a tie); +LEAD_CAP where no other rover claims it."""
+    dist = np.sqrt(np.sum(np.square(rover_pos[:, None] - poi_pos[None]), axis=-1))
+    claims = (np.arange(len(poi_pos))[None] == np.argmin(dist, axis=1)[:, None]) & working[:, None]
+    return _lead(dist, np.where(claims, dist, np.inf))
+
+
+def _tokens(rel_pos: np.ndarray, rel_vel, kind: int, radius, flag, lead=0.0, claim=0.0) -> np.ndarray:
+    """[N, K, 11] tokens of one type from positions [N, K, 2] and velocities (None: they never
+    move) relative to the rover, the type (0 rover, 1 POI, 2 trap), radius, flag, lead and
+    claim lead."""
     tokens = np.zeros((*rel_pos.shape[:2], len(TOKEN_FEATURES)), np.float32)
     tokens[..., 0:2] = rel_pos
     if rel_vel is not None:
@@ -84,6 +99,7 @@ def _tokens(rel_pos: np.ndarray, rel_vel, kind: int, radius, flag, lead=0.0) -> 
     tokens[..., 7] = radius
     tokens[..., 8] = flag
     tokens[..., 9] = lead
+    tokens[..., 10] = claim
     return tokens
 
 
@@ -98,7 +114,7 @@ def observe_entities(
     observe_radius=0.1,
     trap_radius=0.1,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The entity view (own [N, 4], tokens [N, M, 10], mask [N, M] bool). ``observed`` [P]
+    """The entity view (own [N, 4], tokens [N, M, 11], mask [N, M] bool). ``observed`` [P]
     bool: POIs observed so far this episode; ``failed`` [N] bool: rovers that have failed
     (default: none of either). ``observe_radius`` is a scalar or one per POI [P],
     ``trap_radius`` a scalar or one per trap [T]: the environment's, see ``policy.json``."""
@@ -110,7 +126,15 @@ def observe_entities(
     tokens = np.concatenate(
         [
             _tokens(pos[others] - pos[:, None], vel[others] - vel[:, None], 0, rover_radius, failed[others]),
-            _tokens(pois[None] - pos[:, None], None, 1, _f32(observe_radius), observed, poi_leads(pos, pois, ~failed)),
+            _tokens(
+                pois[None] - pos[:, None],
+                None,
+                1,
+                _f32(observe_radius),
+                observed,
+                poi_leads(pos, pois, ~failed),
+                poi_claims(pos, pois, ~failed),
+            ),
             _tokens(traps[None] - pos[:, None], None, 2, _f32(trap_radius), 0.0),
         ],
         axis=1,
@@ -121,7 +145,7 @@ def observe_entities(
 def nearest_entities(own, tokens, mask, k: int, counts: tuple[int, int, int]):
     """An entity view cut to the ``k`` nearest real tokens of each type (other rovers, POIs,
     traps, whose numbers in ``tokens`` are ``counts``), nearest first within a type, then
-    empty tokens (zeros, masked out) where a type has fewer than ``k``: tokens [N, 3k, 10]."""
+    empty tokens (zeros, masked out) where a type has fewer than ``k``: tokens [N, 3k, 11]."""
     cut_tokens, cut_mask, start = [], [], 0
     for count in counts:
         group, exists = tokens[:, start : start + count], mask[:, start : start + count]

@@ -10,7 +10,7 @@ rover, D entity width, H heads, d = D / H, A actions (2).
   rover index, concatenated after the observation in JAX, is the first layer's per-rover
   bias here (``x W = o W_o + W_id[i]``: the same sum, in another order); per-rover networks
   are one batched matrix product over the rover axis.
-- Entity view (:func:`entity_actor`): ``own`` [B, N, 4], ``tokens`` [B, N, M, 10], ``mask``
+- Entity view (:func:`entity_actor`): ``own`` [B, N, 4], ``tokens`` [B, N, M, 11], ``mask``
   [B, N, M] bool -> ``actions`` [B, N, A], any N and M: the attention encoder and MLP head of
   :mod:`roverswarm.algos.entity`.
 - Nearest view (:func:`nearest_actor`): the same inputs with M = 3K, flattened as
@@ -139,7 +139,7 @@ def _norm(g: Graph, x: str, p: dict, name: str) -> str:
 
 def entity_encoder(g: Graph, own: str, tokens: str, mask: str, p: dict, heads: int) -> str:
     """roverswarm's ``EntityEncoder`` (parameters ``p``, ``heads`` attention heads): own
-    [B, N, 4], tokens [B, N, M, 10], mask [B, N, M] bool -> [B, N, 2D]."""
+    [B, N, 4], tokens [B, N, M, 11], mask [B, N, M] bool -> [B, N, 2D]."""
     tokens = g.op("Where", g.op("Unsqueeze", mask, g.const([-1], np.int64)), tokens, g.const(0.0))
     key_mask = g.op("Unsqueeze", mask, g.const([2, 3], np.int64))  # [B, N, 1, 1, M]
     u = g.op("Relu", dense(g, own, p["embed_own"]))  # [B, N, D]
@@ -230,7 +230,7 @@ def entity_actor(params: dict, heads: int, doc: str) -> onnx.ModelProto:
 
 
 def nearest_actor(mlp_params: dict, k: int, activation: str, doc: str) -> onnx.ModelProto:
-    """The on-policy nearest actor: ``own``, ``tokens`` [B, N, 3k, 10], ``mask`` -> ``actions``
+    """The on-policy nearest actor: ``own``, ``tokens`` [B, N, 3k, 11], ``mask`` -> ``actions``
     (the mean, clipped); its MLP reads [own, tokens (zero where masked) flattened, mask]."""
     g = Graph()
     tokens = g.op("Where", g.op("Unsqueeze", "mask", g.const([-1], np.int64)), "tokens", g.const(0.0))

@@ -9,8 +9,9 @@ Shape legend
     N    rovers (static maximum), P POIs, T traps
     M    tokens per rover = (N - 1) + P + T: the other rovers (index order, skipping the
          rover itself), then the POIs, then the traps
-    F    token features: TOKEN_FEATURES = 9, ``[dx, dy, dvx, dvy, is_rover, is_poi,
-         is_trap, radius, flag]`` relative to the rover; + A for the critic (the token
+    F    token features: TOKEN_FEATURES = 11, ``[dx, dy, dvx, dvy, is_rover, is_poi,
+         is_trap, radius, flag, lead, claim]`` relative to the rover
+         (:mod:`roverswarm.env.entities`); + A for the critic (the token
          rover's action; zeros for POIs and traps)
     G    own features: OWN_FEATURES = 4, ``[vx, vy, x, y]``; + A for the critic (own action)
     A    action size (2)

@@ -8,13 +8,14 @@ Shape legend
 Per rover i (pure JAX, jittable, vmappable; leading batch axes come only from vmap):
 
 * ``own`` [N, 4]: its velocity and position (the flat view's first four numbers);
-* ``tokens`` [N, M, 10], one per other entity, ``[dx, dy, dvx, dvy, is_rover, is_poi, is_trap,
-  radius, flag, lead]``: position and velocity relative to rover i (velocity 0 for POIs and
-  traps, which never move), the type as a one-hot, the entity's radius (a rover's body, a POI's
-  observation radius, a trap's radius), a flag (a rover: it has failed; a POI: it has been
-  observed this episode; a trap: 0) and, for a POI, rover i's lead on it (:func:`poi_leads`:
-  how much nearer rover i is than every other working rover, negative if another is nearer;
-  0 for rovers and traps). Other rovers in index order skipping i, then POIs, traps;
+* ``tokens`` [N, M, 11], one per other entity, ``[dx, dy, dvx, dvy, is_rover, is_poi, is_trap,
+  radius, flag, lead, claim]``: position and velocity relative to rover i (velocity 0 for POIs
+  and traps, which never move), the type as a one-hot, the entity's radius (a rover's body, a
+  POI's observation radius, a trap's radius), a flag (a rover: it has failed; a POI: it has
+  been observed this episode; a trap: 0) and, for a POI, rover i's lead on it (:func:`poi_leads`:
+  how much nearer rover i is than every other working rover, negative if another is nearer)
+  and its claim lead (:func:`poi_claims`: the same against only the rovers whose nearest POI
+  it is); both 0 for rovers and traps. Other rovers in index order skipping i, then POIs, traps;
 * ``mask`` [N, M] bool: the token is an entity that exists. In an unpadded layout every token
   exists; in a padded one the slots past the active counts do not (their features are zeros),
   and the rows of rovers that do not exist are all False.
@@ -38,14 +39,14 @@ from roverswarm.env.mars import EnvParams, EnvState, masks_of, observe_radii, ot
 
 OWN_FEATURES = 4
 """Own velocity (2) and position (2)."""
-TOKEN_FEATURES = 10
-"""Relative position (2), relative velocity (2), type one-hot (3), radius, flag, lead."""
+TOKEN_FEATURES = 11
+"""Relative position (2), relative velocity (2), type one-hot (3), radius, flag, lead, claim."""
 LEAD_CAP = 2.0
 """A POI's lead is clipped to [-LEAD_CAP, LEAD_CAP] (the default map's diagonal is 2.8)."""
 ROVER, POI, TRAP = 0, 1, 2
 """Positions of the type one-hot in a token's features (after the first four)."""
-LEAD = 9
-"""Position of the lead in a token's features (the last)."""
+LEAD, CLAIM = 9, 10
+"""Positions of the lead and the claim lead in a token's features (the last two)."""
 
 
 @struct.dataclass
@@ -63,12 +64,19 @@ def token_count(params: EnvParams) -> int:
 
 
 def _tokens(
-    rel_pos: jax.Array, rel_vel: jax.Array, kind: int, radius: jax.Array, flag: jax.Array, lead: jax.Array | None = None
+    rel_pos: jax.Array,
+    rel_vel: jax.Array,
+    kind: int,
+    radius: jax.Array,
+    flag: jax.Array,
+    leads: tuple[jax.Array, jax.Array] | None = None,
 ) -> jax.Array:
-    """[N, K, 2], [N, K, 2], a type, [N, K] radius, flag and lead (None: 0) -> [N, K, TOKEN_FEATURES]."""
+    """[N, K, 2], [N, K, 2], a type, [N, K] radius, flag and (lead, claim lead) (None: 0)
+    -> [N, K, TOKEN_FEATURES]."""
     one_hot = jnp.broadcast_to(jax.nn.one_hot(kind, 3, dtype=rel_pos.dtype), (*rel_pos.shape[:2], 3))
-    lead = jnp.zeros_like(flag) if lead is None else lead
-    return jnp.concatenate([rel_pos, rel_vel, one_hot, radius[..., None], flag[..., None], lead[..., None]], axis=-1)
+    lead, claim = (jnp.zeros_like(flag),) * 2 if leads is None else leads
+    features = [rel_pos, rel_vel, one_hot, radius[..., None], flag[..., None], lead[..., None], claim[..., None]]
+    return jnp.concatenate(features, axis=-1)
 
 
 def poi_leads(rover_pos: jax.Array, poi_pos: jax.Array, working: jax.Array) -> jax.Array:
@@ -79,9 +87,27 @@ def poi_leads(rover_pos: jax.Array, poi_pos: jax.Array, working: jax.Array) -> j
     never nearest: a failed rover beside a POI will not take it; a rover with no working
     other gets +:data:`LEAD_CAP`)."""
     dist = jnp.sqrt(jnp.sum(jnp.square(rover_pos[:, None] - poi_pos[None]), axis=-1))  # [N, P]
-    present = jnp.where(working[:, None], dist, jnp.inf)
-    others = jnp.where(jnp.eye(rover_pos.shape[0], dtype=bool)[:, :, None], jnp.inf, present[None])  # [N, N, P]
+    return _lead(dist, jnp.where(working[:, None], dist, jnp.inf))
+
+
+def _lead(dist: jax.Array, rivals: jax.Array) -> jax.Array:
+    """[N, P] the nearest *other* rover's distance to each POI in ``rivals`` [N, P] (inf: that
+    rover is no rival for that POI) less each rover's own ``dist`` [N, P], clipped to
+    +-:data:`LEAD_CAP`."""
+    others = jnp.where(jnp.eye(dist.shape[0], dtype=bool)[:, :, None], jnp.inf, rivals[None])  # [N, N, P]
     return jnp.clip(jnp.min(others, axis=1) - dist, -LEAD_CAP, LEAD_CAP)
+
+
+def poi_claims(rover_pos: jax.Array, poi_pos: jax.Array, working: jax.Array, pois: jax.Array) -> jax.Array:
+    """[N, P] each rover's *claim lead* on each POI: as :func:`poi_leads`, but against only the
+    other working rovers whose nearest POI it is (their claim; the lowest index on a tie).
+    ``pois`` [P] bool: the POIs that exist (only they are claimed). With the lead it tells a
+    rover that a POI another rover is nearer to is still free, because that rover has a
+    nearer one of its own: +:data:`LEAD_CAP` where no other rover claims the POI."""
+    dist = jnp.sqrt(jnp.sum(jnp.square(rover_pos[:, None] - poi_pos[None]), axis=-1))  # [N, P]
+    nearest = jnp.argmin(jnp.where(pois[None], dist, jnp.inf), axis=1)  # [N]
+    claims = jax.nn.one_hot(nearest, poi_pos.shape[0], dtype=bool) & working[:, None]
+    return _lead(dist, jnp.where(claims, dist, jnp.inf))
 
 
 def observe_entities(state: EnvState, params: EnvParams) -> EntityView:
@@ -99,13 +125,15 @@ def observe_entities(state: EnvState, params: EnvParams) -> EntityView:
     )
     zero_vel = jnp.zeros((n, 1, 2), pos.dtype)
     masks = masks_of(state)
+    working = ~failed if masks is None else masks.rovers & ~failed
+    pois_exist = jnp.ones((p,), bool) if masks is None else masks.pois
     pois = _tokens(
         state.poi_pos[None] - pos[:, None],
         jnp.broadcast_to(zero_vel, (n, p, 2)),
         POI,
         jnp.broadcast_to(observe_radii(params), (n, p)),
         jnp.broadcast_to(state.observed.astype(pos.dtype), (n, p)),
-        poi_leads(pos, state.poi_pos, ~failed if masks is None else masks.rovers & ~failed),
+        (poi_leads(pos, state.poi_pos, working), poi_claims(pos, state.poi_pos, working, pois_exist)),
     )
     traps = _tokens(
         state.trap_pos[None] - pos[:, None],

@@ -99,7 +99,7 @@ def check(config, params: EnvParams) -> None:
     require(
         not ppo.swarm_value or (config.learner.network == "nearest" and config.learner.algo == "mappo"),
         f"--swarm-value is MAPPO's centralised value over --network nearest; got --algo {config.learner.algo} "
-        f"--network {config.learner.network}",
+        f"--network {config.learner.network} (add --no-swarm-value)",
     )
 
 
