@@ -151,6 +151,27 @@ def test_pois_first_observed_counts_each_poi_at_the_step_a_rover_first_reaches_i
         assert sum(counts) >= 1 and int(info["pois_observed"]) == int(seen.sum())
 
 
+def test_unobserved_distance_counts_open_pois_from_working_rovers_only(paper3):
+    """info["unobserved_distance"] against NumPy: the sum over POIs not yet observed of the
+    nearest working rover's distance; rover 0 fails after its first step and never counts."""
+    params = paper3.replace(observe_radius=0.15)
+    step_jit = jax.jit(step_env)
+    _, state = reset(jax.random.PRNGKey(5), params)
+    state = state.replace(fail_step=state.fail_step.at[0].set(1))
+    pois, seen = np.asarray(state.poi_pos), np.asarray(state.observed).copy()
+    values, expected, with_rover_0 = [], [], []
+    for _ in range(params.max_steps):
+        actions = jnp.clip(3.0 * (state.poi_pos - state.rover_pos), -1.0, 1.0)
+        _, state, _, _, _, info = step_jit(state, actions, params)
+        dist = np.linalg.norm(np.asarray(state.rover_pos)[:, None] - pois[None], axis=-1)  # [N, P]
+        seen |= (dist < params.observe_radius).any(axis=0)
+        expected.append(float(np.sum(np.where(seen, 0.0, dist[1:].min(axis=0)))))  # rovers 1 and 2
+        with_rover_0.append(float(np.sum(np.where(seen, 0.0, dist.min(axis=0)))))
+        values.append(float(info["unobserved_distance"]))
+    np.testing.assert_allclose(values, expected, rtol=1e-5, atol=1e-6)
+    assert not np.allclose(expected, with_rover_0, rtol=1e-3)  # the failed rover would have counted
+
+
 # ----------------------------------------------------------------------------- episodes
 
 

@@ -342,9 +342,7 @@ def test_a_full_disk_keeps_the_previous_file_and_leaves_no_temporary_one(tiny_co
     assert not list((tmp_path / "new").glob("*.tmp"))
 
 
-@pytest.mark.parametrize(
-    "options", [{}, RANKED_OPTIONS, {"ensemble": 2}], ids=["uniform", "ranked", "partitions"]
-)
+@pytest.mark.parametrize("options", [{}, RANKED_OPTIONS, {"ensemble": 2}], ids=["uniform", "ranked", "partitions"])
 def test_a_replay_capped_at_the_runs_own_transitions_gives_the_numbers_of_the_full_one(
     tiny_config, monkeypatch, options
 ):
@@ -517,3 +515,25 @@ def test_observe_bonus_pays_every_rover_for_each_poi_first_observed(algo, tiny_c
         np.testing.assert_allclose(paid[-1][name], plain[-1][name], rtol=1e-6)
     with pytest.raises(UserError, match="--observe-bonus must be a finite number >= 0, got -1"):
         validate(with_options(config, {"observe_bonus": -1.0}))
+
+
+def test_unobserved_shaping_charges_every_rover_the_distance_left_to_open_pois(tiny_ppo_config):
+    """--unobserved-shaping w: the learner's rewards fall short of the environment's by w times
+    the step's unobserved distance (never negative), the same for every rover; the episode
+    rewards it reports are the environment's."""
+    import roverswarm.learners.onpolicy as onpolicy
+    from roverswarm.algos import ppo
+    from roverswarm.env import observation_size
+
+    config = dataclasses.replace(tiny_ppo_config, num_envs=25)
+    params = validate(config).replace(observe_radius=0.3)
+    actor = ppo.init_ppo(jax.random.PRNGKey(0), config, params.num_rovers, observation_size(params)).actor
+    run = lambda c: onpolicy.collect(c, params, actor, jax.random.PRNGKey(1))  # noqa: E731
+    plain, shaped = run(config), run(with_options(config, {"unobserved_shaping": 0.5}))
+    charge = (np.asarray(plain[0].rewards) - np.asarray(shaped[0].rewards)) / 0.5  # [T, E, N]
+    np.testing.assert_allclose(charge, charge[..., :1] + 0 * charge, atol=1e-4)  # every rover alike
+    assert charge.min() >= -1e-5 and charge.mean() > 0.1  # the exact distance: test_env_mars
+    for name in ("episode_reward", "agent_rewards"):
+        np.testing.assert_allclose(shaped[-1][name], plain[-1][name], rtol=1e-6)
+    with pytest.raises(UserError, match="--unobserved-shaping must be a finite number >= 0, got -1"):
+        validate(with_options(config, {"unobserved_shaping": -1.0}))

@@ -261,6 +261,7 @@ def validate(config: TrainConfig) -> EnvParams:
         require(value > 0, f"--{name.replace('_', '-')} must be positive, got {value}")
     _finite(learner.trap_shaping, 0, "trap-shaping")
     _finite(learner.observe_bonus, 0, "observe-bonus")
+    _finite(learner.unobserved_shaping, 0, "unobserved-shaping")
     require(0 <= learner.gamma <= 1, f"--gamma must be in [0, 1], got {learner.gamma}")
     learner_family(learner.algo).check(config, params)
     return params

@@ -39,9 +39,13 @@ def shaped_rewards(rewards: jax.Array, info: dict[str, jax.Array], learner: Algo
     """The rewards a learner trains on: the environment's ``rewards`` [..., N] less
     ``learner.trap_shaping`` more per trap each rover touches (``--trap-shaping``), plus
     ``learner.observe_bonus`` for every rover per POI first observed at the step
-    (``--observe-bonus``). Episode rewards, metrics and evaluations stay the environment's."""
-    bonus = learner.observe_bonus * info["pois_first_observed"][..., None]
-    return rewards - learner.trap_shaping * info["trap_contacts"] + bonus
+    (``--observe-bonus``), less ``learner.unobserved_shaping`` times the distance the swarm's
+    working rovers still have to the POIs not yet observed, for every rover
+    (``--unobserved-shaping``). Episode rewards, metrics and evaluations stay the environment's."""
+    swarm = (
+        learner.observe_bonus * info["pois_first_observed"] - learner.unobserved_shaping * info["unobserved_distance"]
+    )
+    return rewards - learner.trap_shaping * info["trap_contacts"] + swarm[..., None]
 
 
 def step_stats(rewards: jax.Array, info: dict[str, jax.Array], live: jax.Array | None = None) -> dict[str, jax.Array]:

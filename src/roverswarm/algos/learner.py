@@ -107,6 +107,12 @@ class AlgoConfig:
     rover each time a POI is observed for the first time in the episode (a reason to visit
     every POI, not only to cover them); reports and evaluations stay the environment's
     reward. MADDPG, DDPG, MAPPO and IPPO."""
+    unobserved_shaping: float = 0.0
+    """Reward shaping: the learner trains on the environment's reward less this much times, per
+    step and for every rover, the sum over the POIs not yet observed of the nearest working
+    rover's distance. The paper's coverage counts observed POIs too, so two rovers left with
+    three POIs are best placed between them; this pays for visiting the last one. Reports and
+    evaluations stay the environment's reward. MADDPG, DDPG, MAPPO and IPPO."""
 
 
 @struct.dataclass

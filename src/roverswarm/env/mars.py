@@ -157,11 +157,24 @@ def coverage_distance(rover_pos: jax.Array, poi_pos: jax.Array, masks: Masks | N
     return jnp.sum(jnp.where(masks.pois, nearest, 0.0))
 
 
+def unobserved_distance(state: EnvState, masks: Masks | None = None) -> jax.Array:
+    """[] Sum over the POIs not yet observed (that exist) of the nearest *working* rover's
+    distance (a rover that exists and has not failed; 0 for a POI when none works): how far
+    the swarm still is from finishing its survey."""
+    working = state.time < state.fail_step
+    pois = ~state.observed
+    if masks is not None:
+        working, pois = working & masks.rovers, pois & masks.pois
+    nearest = jnp.min(jnp.where(working[:, None], _pairwise_dist(state.rover_pos, state.poi_pos), jnp.inf), axis=0)
+    return jnp.sum(jnp.where(pois & jnp.isfinite(nearest), nearest, 0.0))
+
+
 def reset(key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
     """Start an episode: POIs, then traps clear of POIs, then rovers clear of traps, drawn
     with ``key`` by :func:`~roverswarm.env.layouts.draw_layout` (uniform positions, 16
-    candidates per trap and rover, unless the params fix them). No rover has failed (``fail_step`` is NEVER) unless ``fail_rate`` draws a
-    failure, from a key of its own (the layout is the same whatever the rate).
+    candidates per trap and rover, unless the params fix them). No rover has failed
+    (``fail_step`` is NEVER) unless ``fail_rate`` draws a failure, from a key of its own (the
+    layout is the same whatever the rate).
 
     Padded params (``active_*``): every slot is drawn, the state carries masks, and only the
     entities that exist keep each other clear.
@@ -171,9 +184,7 @@ def reset(key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
     n, p, t = params.num_rovers, params.num_pois, params.num_traps
     masks = None
     if is_padded(params):
-        masks = Masks(
-            _active(params.active_rovers, n), _active(params.active_pois, p), _active(params.active_traps, t)
-        )
+        masks = Masks(_active(params.active_rovers, n), _active(params.active_pois, p), _active(params.active_traps, t))
     poi_pos, trap_pos, rover_pos = draw_layout(key, params, trap_radii(params), masks)
     fail_step = jnp.full((n,), NEVER, jnp.int32)
     if params.fail_rate is not None:
@@ -311,8 +322,9 @@ def step_env(
     Returns ``(obs [N, O], state, rewards [N], terminated [], truncated [], info)`` where info
     holds ``collisions`` [N] (other rovers touched), ``trap_contacts`` [N] (traps touched),
     ``coverage_distance`` [] (sum over POIs of the nearest rover's distance),
-    ``pois_observed`` [] (POIs observed so far this episode) and ``pois_first_observed`` []
-    (POIs observed for the first time at this step).
+    ``pois_observed`` [] (POIs observed so far this episode), ``pois_first_observed`` []
+    (POIs observed for the first time at this step) and ``unobserved_distance`` [] (sum over
+    the POIs not yet observed of the nearest working rover's distance, :func:`unobserved_distance`).
     """
     check_actions(actions, params)
     masks = masks_of(state)
@@ -354,6 +366,7 @@ def step_env(
         "coverage_distance": coverage,
         "pois_observed": seen,
         "pois_first_observed": seen - seen_before,
+        "unobserved_distance": unobserved_distance(state, masks),
     }
     return observe(state, params), state, rewards, terminated, truncated, info
 

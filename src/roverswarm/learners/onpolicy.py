@@ -54,6 +54,7 @@ PPO_USES = (
     "hidden",
     "trap_shaping",
     "observe_bonus",
+    "unobserved_shaping",
     "network",
     "entity_dim",
     "entity_heads",
