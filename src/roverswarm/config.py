@@ -152,7 +152,7 @@ rover's lead and claim lead on it), the value also the whole swarm's mean view a
 largest size drawn growing from 2 to 10 over the first 15,000 episodes, each episode weighing
 the same in the loss whatever its size (``--balance-sizes``); 250,000 episodes, the learning
 rates decaying linearly to 0 over them (``--anneal-episodes``: give it with ``--episodes``,
-or the rates stop short of 0 or reach it early), 78 minutes for 5 seeds on 2 cores
+or the rates stop short of 0 or reach it early), about 77 minutes for 5 seeds on 2 cores
 (``docs/results/any-size/``). Attention over the entities
 (``--network entity``) is the other encoder; one update cost 13 to 43 times as much here
 (docs/results/any-size/README.md), too slow for a 5-seed run so far."""

@@ -12,7 +12,7 @@ then evaluates every seed's deterministic policy at N = 2..10 (the sizes it trai
 random and the oracle. Writes ``any-size.csv`` / ``.md`` (the sweep tables' columns: every seed's
 score, the means of POIs observed, collisions and trap contacts, the oracle's trap contacts)
 and ``any-size.png``: the score against N beside the best per-size rows of the scale sweeps
-(``docs/results/swarm/score-vs-n.csv``) and the earlier anysize runs (``any-size-v1.csv``, ``any-size-v2.csv``).
+(``docs/results/swarm/score-vs-n.csv``) and the earlier anysize runs (``any-size-v1.csv`` .. ``-v4.csv``).
 Last, ``mission stress`` of ``examples/mission.yaml`` for every seed, with and without one
 random rover failure, beside the oracle: ``any-size-stress.csv``.
 
@@ -46,10 +46,11 @@ HERE = Path(__file__).resolve().parent
 SIZES = (2, 3, 4, 5, 6, 7, 8, 9, 10, 12, 16, 20, 32)
 BASELINES = {"swarm (60k)", "swarm-ddpg (60k)", "mappo (40k)"}
 """The best per-size rows of today (one network per size), from the scale sweeps."""
-EARLIER = (HERE / "any-size-v1.csv", HERE / "any-size-v2.csv", HERE / "any-size-v3.csv")
+EARLIER = tuple(HERE / f"any-size-v{k}.csv" for k in (1, 2, 3, 4))
 """The earlier anysize runs' rows, kept beside the new: the first (20,000 episodes, no POI lead,
-no curriculum), the second (60,000 episodes, 2 x 64 networks, no sample balance) and the third
-(200,000 episodes, constant learning rates)."""
+no curriculum), the second (60,000 episodes, 2 x 64 networks, no sample balance), the third
+(200,000 episodes, constant learning rates) and the fourth (250,000 episodes, annealed; no
+claim lead, a value of the rover's own view)."""
 SPECIALIST_SIZES = (2, 3, 5, 8, 10)
 SPECIALISTS = HERE / "any-size-specialists.csv"
 
