@@ -64,11 +64,10 @@ LEAD_CAP = 2.0
 """A POI's lead is clipped to [-LEAD_CAP, LEAD_CAP]."""
 
 
-def poi_leads(rover_pos: np.ndarray, poi_pos: np.ndarray, working: np.ndarray) -> np.ndarray:
-    """[N, P] the nearest other working rover's distance to each POI less the rover's own,
-    clipped to +-:data:`LEAD_CAP` (+LEAD_CAP for a rover with no working other). ``working``
-    [N] bool: the rovers that have not failed."""
-    dist = np.sqrt(np.sum(np.square(rover_pos[:, None] - poi_pos[None]), axis=-1))
+def poi_leads(dist: np.ndarray, working: np.ndarray) -> np.ndarray:
+    """[N, P] from each rover's distance to each POI ``dist`` [N, P]: the nearest other working
+    rover's distance to each POI less the rover's own, clipped to +-:data:`LEAD_CAP` (+LEAD_CAP
+    for a rover with no working other). ``working`` [N] bool: the rovers that have not failed."""
     return _lead(dist, np.where(working[:, None], dist, np.inf))
 
 
@@ -79,11 +78,10 @@ def _lead(dist: np.ndarray, rivals: np.ndarray) -> np.ndarray:
     return np.clip(np.min(others, axis=1, initial=np.inf) - dist, -LEAD_CAP, LEAD_CAP).astype(np.float32)
 
 
-def poi_claims(rover_pos: np.ndarray, poi_pos: np.ndarray, working: np.ndarray) -> np.ndarray:
+def poi_claims(dist: np.ndarray, working: np.ndarray) -> np.ndarray:
     """[N, P] the claim lead: as :func:`poi_leads`, against only the other working rovers whose
     nearest POI it is (the first on a tie); +LEAD_CAP where no other rover claims it."""
-    dist = np.sqrt(np.sum(np.square(rover_pos[:, None] - poi_pos[None]), axis=-1))
-    claims = (np.arange(len(poi_pos))[None] == np.argmin(dist, axis=1)[:, None]) & working[:, None]
+    claims = (np.arange(dist.shape[1])[None] == np.argmin(dist, axis=1)[:, None]) & working[:, None]
     return _lead(dist, np.where(claims, dist, np.inf))
 
 
@@ -123,6 +121,7 @@ def observe_entities(
     observed = np.zeros(p, bool) if observed is None else np.asarray(observed, bool)
     failed = np.zeros(n, bool) if failed is None else np.asarray(failed, bool)
     others = other_rovers(n)
+    dist = np.sqrt(np.sum(np.square(pos[:, None] - pois[None]), axis=-1))  # [N, P]
     tokens = np.concatenate(
         [
             _tokens(pos[others] - pos[:, None], vel[others] - vel[:, None], 0, rover_radius, failed[others]),
@@ -132,8 +131,8 @@ def observe_entities(
                 1,
                 _f32(observe_radius),
                 observed,
-                poi_leads(pos, pois, ~failed),
-                poi_claims(pos, pois, ~failed),
+                poi_leads(dist, ~failed),
+                poi_claims(dist, ~failed),
             ),
             _tokens(traps[None] - pos[:, None], None, 2, _f32(trap_radius), 0.0),
         ],

@@ -79,14 +79,18 @@ def _tokens(
     return jnp.concatenate(features, axis=-1)
 
 
-def poi_leads(rover_pos: jax.Array, poi_pos: jax.Array, working: jax.Array) -> jax.Array:
-    """[N, P] each rover's lead on each POI: the nearest other *working* rover's distance to
-    the POI less its own, clipped to +-:data:`LEAD_CAP`. Positive: no other rover that can
-    still move is closer (the POI is this rover's to take); negative: another is that much
-    closer. ``working`` [N] bool: the rovers that exist and have not failed (the others are
-    never nearest: a failed rover beside a POI will not take it; a rover with no working
-    other gets +:data:`LEAD_CAP`)."""
-    dist = jnp.sqrt(jnp.sum(jnp.square(rover_pos[:, None] - poi_pos[None]), axis=-1))  # [N, P]
+def poi_distances(rover_pos: jax.Array, poi_pos: jax.Array) -> jax.Array:
+    """[N, P] each rover's [N, 2] distance to each POI [P, 2]."""
+    return jnp.sqrt(jnp.sum(jnp.square(rover_pos[:, None] - poi_pos[None]), axis=-1))
+
+
+def poi_leads(dist: jax.Array, working: jax.Array) -> jax.Array:
+    """[N, P] each rover's lead on each POI from the distances ``dist`` [N, P]
+    (:func:`poi_distances`): the nearest other *working* rover's distance to the POI less its
+    own, clipped to +-:data:`LEAD_CAP`. Positive: no other rover that can still move is closer
+    (the POI is this rover's to take); negative: another is that much closer. ``working`` [N]
+    bool: the rovers that exist and have not failed (the others are never nearest: a failed
+    rover beside a POI will not take it; a rover with no working other gets +:data:`LEAD_CAP`)."""
     return _lead(dist, jnp.where(working[:, None], dist, jnp.inf))
 
 
@@ -98,15 +102,14 @@ def _lead(dist: jax.Array, rivals: jax.Array) -> jax.Array:
     return jnp.clip(jnp.min(others, axis=1) - dist, -LEAD_CAP, LEAD_CAP)
 
 
-def poi_claims(rover_pos: jax.Array, poi_pos: jax.Array, working: jax.Array, pois: jax.Array) -> jax.Array:
+def poi_claims(dist: jax.Array, working: jax.Array, pois: jax.Array) -> jax.Array:
     """[N, P] each rover's *claim lead* on each POI: as :func:`poi_leads`, but against only the
     other working rovers whose nearest POI it is (their claim; the lowest index on a tie).
     ``pois`` [P] bool: the POIs that exist (only they are claimed). With the lead it tells a
     rover that a POI another rover is nearer to is still free, because that rover has a
     nearer one of its own: +:data:`LEAD_CAP` where no other rover claims the POI."""
-    dist = jnp.sqrt(jnp.sum(jnp.square(rover_pos[:, None] - poi_pos[None]), axis=-1))  # [N, P]
     nearest = jnp.argmin(jnp.where(pois[None], dist, jnp.inf), axis=1)  # [N]
-    claims = jax.nn.one_hot(nearest, poi_pos.shape[0], dtype=bool) & working[:, None]
+    claims = jax.nn.one_hot(nearest, dist.shape[1], dtype=bool) & working[:, None]
     return _lead(dist, jnp.where(claims, dist, jnp.inf))
 
 
@@ -127,13 +130,14 @@ def observe_entities(state: EnvState, params: EnvParams) -> EntityView:
     masks = masks_of(state)
     working = ~failed if masks is None else masks.rovers & ~failed
     pois_exist = jnp.ones((p,), bool) if masks is None else masks.pois
+    dist = poi_distances(pos, state.poi_pos)
     pois = _tokens(
         state.poi_pos[None] - pos[:, None],
         jnp.broadcast_to(zero_vel, (n, p, 2)),
         POI,
         jnp.broadcast_to(observe_radii(params), (n, p)),
         jnp.broadcast_to(state.observed.astype(pos.dtype), (n, p)),
-        (poi_leads(pos, state.poi_pos, working), poi_claims(pos, state.poi_pos, working, pois_exist)),
+        (poi_leads(dist, working), poi_claims(dist, working, pois_exist)),
     )
     traps = _tokens(
         state.trap_pos[None] - pos[:, None],
