@@ -1,0 +1,121 @@
+"""Why a trained swarm that lost a rover does not finish its mission: two measurements.
+
+    python docs/results/any-size/rover_loss.py runs/anysize                     # seed 0
+    python docs/results/any-size/rover_loss.py runs/anysize runs/p3-specialist --seed 1
+
+1. ``examples/mission.yaml`` with one rover failing at a random step before the mission would
+   be complete (the failures of ``roverswarm mission stress``, same key): of the episodes that
+   fail, how many POIs stay unobserved, how far the working rovers end from the first of them
+   (median), how far they moved in the last 5 steps (median of the farther), and success by
+   when the failure came (as a share of the time the episode took without it), per fifth.
+2. ``paper-3``, one rover failing at a uniform step in every episode: the episode reward, the
+   distance of the working rovers to the POIs not yet observed summed over the steps (what
+   ``--unobserved-shaping`` charges, per rover) and the share of episodes that observe every
+   POI, for the oracle and each run.
+
+Each run's seed ``--seed`` drives the rovers; deterministic (no exploration noise).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from roverswarm.env import get_scenario
+from roverswarm.env.mars import NEVER
+from roverswarm.env.missions import load_mission
+from roverswarm.jaxcache import enable_compilation_cache
+from roverswarm.mission import random_failures
+from roverswarm.rollout import MissionStats, Rollout, rollout
+from roverswarm.runs import Run, load_policy
+
+MISSION = Path(__file__).resolve().parents[3] / "examples" / "mission.yaml"
+
+
+def mission_failures(spec: str, seed: int, episodes: int) -> None:
+    """Measurement 1 for the run (or ``oracle``) ``spec``."""
+    mission = load_mission(MISSION)
+    params = mission.params
+    policy = load_policy(spec, params, f"mission '{mission.name}'", seed)
+    key = jax.random.PRNGKey(0)
+    clean = MissionStats.of(rollout(policy, key, params, episodes))
+    finish = np.where(clean.success, clean.time_to_all, params.max_steps)
+    fail_step = random_failures(jax.random.fold_in(key, 1), finish, params.num_rovers)
+    data = rollout(policy, key, params, episodes, fail_step=fail_step)
+    stats = MissionStats.of(data)
+    failed_rover = fail_step.argmin(axis=1)
+    ending, moving, missing = [], [], []
+    for e in np.flatnonzero(~stats.success):
+        unobserved = np.flatnonzero(~data.observed[e, -1])
+        working = np.arange(params.num_rovers) != failed_rover[e]
+        end = data.rover_pos[e, -1, working]
+        ending.append(np.linalg.norm(end - data.poi_pos[e, unobserved[0]], axis=-1).min())
+        moving.append(np.linalg.norm(end - data.rover_pos[e, -6, working], axis=-1).max())
+        missing.append(len(unobserved))
+    print(f"{spec} (seed {seed}): mission with one failure {stats.success.mean():.0%} of {episodes}")
+    if missing:
+        counts = np.bincount(missing)
+        print(
+            f"  {len(missing)} fail; POIs unobserved: "
+            + ", ".join(f"{k}: {c}" for k, c in enumerate(counts) if c)
+            + f"; working rovers end {np.median(ending):.2f} from the first (median) and moved"
+            f" {np.median(moving):.3f} in the last 5 steps (median)"
+        )
+    share = fail_step.min(axis=1) / np.maximum(finish, 1)
+    fifths = [
+        f"{stats.success[(share >= b / 5) & (share < (b + 1) / 5)].mean():.0%}"
+        for b in range(5)
+        if np.any((share >= b / 5) & (share < (b + 1) / 5))
+    ]
+    print("  success by when the failure came, per fifth of the clean episode: " + " / ".join(fifths))
+
+
+def unobserved_distance(data: Rollout, fail_step: np.ndarray) -> np.ndarray:
+    """[E] the working rovers' distance to the POIs not yet observed, summed over the steps."""
+    pos = data.rover_pos[:, 1:]  # [E, T, N, 2]
+    steps = pos.shape[1]
+    dist = np.linalg.norm(pos[:, :, :, None] - data.poi_pos[:, None, None], axis=-1)  # [E, T, N, P]
+    working = np.arange(1, steps + 1)[None, :, None] < fail_step[:, None, :]
+    nearest = np.where(working[..., None], dist, np.inf).min(axis=2)  # [E, T, P]
+    return np.where(~data.observed[:, 1:] & np.isfinite(nearest), nearest, 0.0).sum(axis=(1, 2))
+
+
+def failure_returns(spec: str, seed: int, episodes: int) -> None:
+    """Measurement 2 for the run (or ``oracle``) ``spec``."""
+    params = get_scenario("paper-3")
+    if spec != "oracle":
+        params = params.replace(nearest_first=Run(spec).params.nearest_first)
+    rng = np.random.default_rng(0)
+    fail_step = np.full((episodes, params.num_rovers), NEVER, np.int32)
+    fail_step[np.arange(episodes), rng.integers(0, params.num_rovers, episodes)] = rng.integers(
+        0, params.max_steps, episodes
+    )
+    policy = load_policy(spec, params, "paper-3", seed)
+    data = rollout(policy, jax.random.PRNGKey(0), params, episodes, fail_step=fail_step)
+    print(
+        f"| {spec} (seed {seed}) | {data.stats.reward.mean():.1f} | {unobserved_distance(data, fail_step).mean():.1f} "
+        f"| {MissionStats.of(data).success.mean():.0%} |"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("runs", nargs="+", help="run folders of `roverswarm train` (and/or `oracle`)")
+    parser.add_argument("--seed", type=int, default=0, help="which seed of each run drives the rovers")
+    parser.add_argument("--episodes", type=int, default=500, help="mission episodes (paper-3: twice as many)")
+    args = parser.parse_args()
+    enable_compilation_cache()
+    specs = ["oracle", *(r for r in args.runs if r != "oracle")]
+    for spec in specs:
+        mission_failures(spec, args.seed if spec != "oracle" else 0, args.episodes)
+    print("\npaper-3, one rover failing at a uniform step in every episode:\n")
+    print("| policy | episode reward | distance to unobserved POIs, summed | all POIs observed |\n|---|---|---|---|")
+    for spec in specs:
+        failure_returns(spec, args.seed if spec != "oracle" else 0, 2 * args.episodes)
+
+
+if __name__ == "__main__":
+    main()
