@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from roverswarm.env.mars import EnvParams, EnvState, masks_of, observe_radii, other_rovers, trap_radii
+from roverswarm.env.mars import EnvParams, EnvState, masks_of, observe_radii, other_rovers, pairwise_dist, trap_radii
 
 OWN_FEATURES = 4
 """Own velocity (2) and position (2)."""
@@ -79,18 +79,14 @@ def _tokens(
     return jnp.concatenate(features, axis=-1)
 
 
-def poi_distances(rover_pos: jax.Array, poi_pos: jax.Array) -> jax.Array:
-    """[N, P] each rover's [N, 2] distance to each POI [P, 2]."""
-    return jnp.sqrt(jnp.sum(jnp.square(rover_pos[:, None] - poi_pos[None]), axis=-1))
-
-
 def poi_leads(dist: jax.Array, working: jax.Array) -> jax.Array:
-    """[N, P] each rover's lead on each POI from the distances ``dist`` [N, P]
-    (:func:`poi_distances`): the nearest other *working* rover's distance to the POI less its
-    own, clipped to +-:data:`LEAD_CAP`. Positive: no other rover that can still move is closer
-    (the POI is this rover's to take); negative: another is that much closer. ``working`` [N]
-    bool: the rovers that exist and have not failed (the others are never nearest: a failed
-    rover beside a POI will not take it; a rover with no working other gets +:data:`LEAD_CAP`)."""
+    """[N, P] each rover's lead on each POI from the distances ``dist`` [N, P] (rovers to POIs,
+    :func:`~roverswarm.env.mars.pairwise_dist`): the nearest other *working* rover's distance to
+    the POI less its own, clipped to +-:data:`LEAD_CAP`. Positive: no other rover that can
+    still move is closer (the POI is this rover's to take); negative: another is that much
+    closer. ``working`` [N] bool: the rovers that exist and have not failed (the others are
+    never nearest: a failed rover beside a POI will not take it; a rover with no working other
+    gets +:data:`LEAD_CAP`)."""
     return _lead(dist, jnp.where(working[:, None], dist, jnp.inf))
 
 
@@ -130,7 +126,7 @@ def observe_entities(state: EnvState, params: EnvParams) -> EntityView:
     masks = masks_of(state)
     working = ~failed if masks is None else masks.rovers & ~failed
     pois_exist = jnp.ones((p,), bool) if masks is None else masks.pois
-    dist = poi_distances(pos, state.poi_pos)
+    dist = pairwise_dist(pos, state.poi_pos)
     pois = _tokens(
         state.poi_pos[None] - pos[:, None],
         jnp.broadcast_to(zero_vel, (n, p, 2)),

@@ -142,7 +142,7 @@ def observe_radii(params: EnvParams) -> jax.Array:
     return jnp.broadcast_to(jnp.asarray(params.observe_radius, jnp.float32), (params.num_pois,))
 
 
-def _pairwise_dist(a: jax.Array, b: jax.Array) -> jax.Array:
+def pairwise_dist(a: jax.Array, b: jax.Array) -> jax.Array:
     """[A, 2], [B, 2] -> [A, B] Euclidean distances."""
     return jnp.sqrt(jnp.sum(jnp.square(a[:, None, :] - b[None, :, :]), axis=-1))
 
@@ -150,7 +150,7 @@ def _pairwise_dist(a: jax.Array, b: jax.Array) -> jax.Array:
 def coverage_distance(rover_pos: jax.Array, poi_pos: jax.Array, masks: Masks | None = None) -> jax.Array:
     """The swarm's coverage distance: sum over POIs [P, 2] of the nearest rover's [N, 2] distance
     (with ``masks``, over the POIs that exist, of the nearest rover that exists)."""
-    dist = _pairwise_dist(rover_pos, poi_pos)
+    dist = pairwise_dist(rover_pos, poi_pos)
     if masks is None:
         return jnp.sum(jnp.min(dist, axis=0))
     nearest = jnp.min(jnp.where(masks.rovers[:, None], dist, jnp.inf), axis=0)
@@ -165,7 +165,7 @@ def unobserved_distance(state: EnvState, masks: Masks | None = None) -> jax.Arra
     pois = ~state.observed
     if masks is not None:
         working, pois = working & masks.rovers, pois & masks.pois
-    nearest = jnp.min(jnp.where(working[:, None], _pairwise_dist(state.rover_pos, state.poi_pos), jnp.inf), axis=0)
+    nearest = jnp.min(jnp.where(working[:, None], pairwise_dist(state.rover_pos, state.poi_pos), jnp.inf), axis=0)
     return jnp.sum(jnp.where(pois & jnp.isfinite(nearest), nearest, 0.0))
 
 
@@ -280,7 +280,7 @@ def _nearest_first(rel: jax.Array, exists: jax.Array | None = None):
 
 
 def _observed_now(state: EnvState, params: EnvParams) -> jax.Array:
-    near = _pairwise_dist(state.rover_pos, state.poi_pos) < observe_radii(params)
+    near = pairwise_dist(state.rover_pos, state.poi_pos) < observe_radii(params)
     masks = masks_of(state)
     if masks is None:
         return state.observed | jnp.any(near, axis=0)
@@ -343,9 +343,9 @@ def step_env(
     state = state.replace(observed=_observed_now(state, params))
     seen = jnp.sum(state.observed)
 
-    rover_dist = _pairwise_dist(pos, pos)
+    rover_dist = pairwise_dist(pos, pos)
     touching = (rover_dist < 2 * params.rover_radius) & ~jnp.eye(params.num_rovers, dtype=bool)
-    in_trap = _pairwise_dist(pos, state.trap_pos) < params.rover_radius + trap_radii(params)
+    in_trap = pairwise_dist(pos, state.trap_pos) < params.rover_radius + trap_radii(params)
     if masks is not None:
         touching = touching & masks.rovers[:, None] & masks.rovers[None, :]
         in_trap = in_trap & masks.rovers[:, None] & masks.traps[None, :]
