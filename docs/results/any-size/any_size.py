@@ -39,6 +39,7 @@ from roverswarm.config import PRESETS, TrainConfig
 from roverswarm.evaluate import evaluate_run
 from roverswarm.experiments.sweep import figure, markdown, read_table
 from roverswarm.jaxcache import enable_compilation_cache
+from roverswarm.limits import read_config
 from roverswarm.runs import CONFIG, METRICS, read_metrics, training_seconds, write_csv
 from roverswarm.storage import atomic_write
 
@@ -91,11 +92,20 @@ def table(run: Path, episodes: int, sizes=SIZES, setting: str = "anysize") -> li
     return rows
 
 
-def anysize(episodes: int, seeds: int, **ppo_changes) -> TrainConfig:
-    """The anysize preset for ``episodes`` per seed, its learning rates annealed over them."""
+def anysize(episodes: int, seeds: int, fail_rate: float = 0.0, shaping: float = 0.0, **ppo_changes) -> TrainConfig:
+    """The anysize preset for ``episodes`` per seed, its learning rates annealed over them, with
+    ``fail_rate`` (rover failures in training) and ``shaping`` (``--unobserved-shaping``)."""
     preset = PRESETS["anysize"]
     ppo = dataclasses.replace(preset.ppo, anneal_episodes=episodes, **ppo_changes)
-    return dataclasses.replace(preset, episodes=episodes, seeds=seeds, ppo=ppo)
+    learner = dataclasses.replace(preset.learner, unobserved_shaping=shaping)
+    return dataclasses.replace(preset, episodes=episodes, seeds=seeds, ppo=ppo, learner=learner, fail_rate=fail_rate)
+
+
+def setting(config: TrainConfig) -> str:
+    """The rows' setting: ``anysize``, with the failure rate and shaping when the run has them."""
+    extra = [f"fail {config.fail_rate:g}"] * (config.fail_rate > 0)
+    extra += [f"shaping {config.learner.unobserved_shaping:g}"] * (config.learner.unobserved_shaping > 0)
+    return " + ".join(["anysize", *extra])
 
 
 def specialists(folder: Path, episodes: int, seeds: int, eval_episodes: int) -> list[dict[str, object]]:
@@ -144,6 +154,8 @@ def main() -> None:
     parser.add_argument("--stress-only", action="store_true", help="only mission stress of the run as it stands")
     parser.add_argument("--stress-episodes", type=int, default=500, help="mission stress episodes per seed")
     parser.add_argument("--out", type=Path, default=HERE / "any-size", help="output path without suffix")
+    parser.add_argument("--fail-rate", type=float, default=0.0, help="rover failures in training (train --fail-rate)")
+    parser.add_argument("--unobserved-shaping", type=float, default=0.0, help="train --unobserved-shaping")
     args = parser.parse_args()
     enable_compilation_cache()
     if args.specialists is not None:
@@ -155,9 +167,10 @@ def main() -> None:
     if args.run is None:
         parser.error("give --run (the one policy) or --specialists")
     if not (args.evaluate or args.stress_only):
-        train(anysize(args.episodes, args.seeds), out=args.run, resume=(args.run / CONFIG).exists())
+        config = anysize(args.episodes, args.seeds, args.fail_rate, args.unobserved_shaping)
+        train(config, out=args.run, resume=(args.run / CONFIG).exists())
     if not args.stress_only:
-        rows = table(args.run, args.eval_episodes)
+        rows = table(args.run, args.eval_episodes, setting=setting(read_config(args.run / CONFIG)))
         write_csv(args.out.with_suffix(".csv"), rows)
         atomic_write(args.out.with_suffix(".md"), lambda f: f.write(markdown(rows)))
         draw(rows, args.out.with_suffix(".png"))
