@@ -17,7 +17,15 @@ from roverswarm.config import with_options
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
 from roverswarm.experiments.arms import usable_cpus
-from roverswarm.experiments.sweep import SweepConfig, evaluation, gapped, load_sweep, read_table, sweep
+from roverswarm.experiments.sweep import (
+    SweepConfig,
+    evaluation,
+    gapped,
+    load_sweep,
+    read_table,
+    setting_colours,
+    sweep,
+)
 from roverswarm.rollout import rollout
 from roverswarm.runs import Run, write_csv
 
@@ -267,6 +275,19 @@ def test_a_line_through_a_settings_scores_stops_at_a_scenario_it_did_not_run():
     assert np.isnan(xs[2]) and np.isnan(ys[2]) and (xs[3], ys[3]) == (3, 30.0)
     assert np.isnan(xs[4]) and (xs[5], ys[5]) == (5, 50.0) and len(xs) == 6
     assert gapped([0, 1, 2], [1.0, 2.0, 3.0]) == ([0, 1, 2], [1.0, 2.0, 3.0])
+
+
+@pytest.mark.parametrize("count", [3, 10, 11, 14])
+def test_every_setting_of_a_figure_has_a_colour_of_its_own_up_to_twenty(count):
+    """Up to ten settings keep matplotlib's default colours (the figures drawn before); from
+    eleven on (the any-size figure has twelve) none repeats."""
+    from matplotlib import rcParams
+    from matplotlib.colors import to_hex
+
+    colours = [to_hex(c) for c in setting_colours(count)]
+    assert len(set(colours)) == count
+    if count <= 10:
+        assert colours == [to_hex(c) for c in rcParams["axes.prop_cycle"].by_key()["color"][:count]]
 
 
 def _sweep_on_ray(file, out) -> dict[str, object]:

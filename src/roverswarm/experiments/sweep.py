@@ -217,6 +217,15 @@ def gapped(x: list[int], y: list[float]) -> tuple[list[float], list[float]]:
     return xs, ys
 
 
+def setting_colours(count: int) -> list[tuple[float, float, float]]:
+    """One colour per setting of a figure: matplotlib's own ten (tab10) up to ten settings,
+    else tab20's twenty (tab10 would repeat from the eleventh), then repeating."""
+    from matplotlib import colormaps
+
+    palette = colormaps["tab10" if count <= 10 else "tab20"].colors
+    return [palette[i % len(palette)] for i in range(count)]
+
+
 def figure(rows: list[dict[str, object]], path: Path) -> None:
     """Left: every seed's score (dots) and their mean (line; dotted across scenarios a setting
     skipped) per scenario, one colour per setting, beside random (0) and the oracle (1).
@@ -226,12 +235,14 @@ def figure(rows: list[dict[str, object]], path: Path) -> None:
     scenarios = list(dict.fromkeys(str(r["scenario"]) for r in rows))
     fig = Figure(figsize=(1.2 * len(scenarios) + 6, 4.5), dpi=100)
     ax, clock = fig.subplots(1, 2, gridspec_kw={"width_ratios": [3, 2]})
-    for setting in dict.fromkeys(str(r["setting"]) for r in rows):
+    settings = list(dict.fromkeys(str(r["setting"]) for r in rows))
+    colours = setting_colours(len(settings))
+    for i, setting in enumerate(settings):
         mine = [r for r in rows if r["setting"] == setting]
         x = [scenarios.index(str(r["scenario"])) for r in mine]
         scores = [[float(v) for v in str(r["scores"]).split(" / ")] for r in mine]
         means = [float(np.mean(v)) for v in scores]
-        (line,) = ax.plot(*gapped(x, means), marker="o", label=setting)
+        (line,) = ax.plot(*gapped(x, means), marker="o", label=setting, color=colours[i])
         if len(gapped(x, means)[0]) > len(x):  # a scenario skipped: bridge it with a dotted line
             ax.plot(*zip(*sorted(zip(x, means))), linestyle=":", linewidth=1, color=line.get_color())
         for xi, v in zip(x, scores):
