@@ -156,11 +156,11 @@ def _check_replay_fits(config: TrainConfig, params: EnvParams) -> None:
     )
 
 
-def _check_resumable(config: TrainConfig, out: Path) -> None:
+def _check_resumable(config: TrainConfig, out: Path) -> tuple[int, list[dict[str, float]]]:
     """``out`` holds a run trained with ``config`` but for its episodes and budget (:data:`RESUME_CHANGES`),
     which may grow to extend it, never below what the checkpoint has trained, and whose budget
     is not spent unless it is finished; else :class:`UserError` (before anything is loaded or
-    written)."""
+    written). Returns :func:`~roverswarm.runs.checkpointed_rows` (read once)."""
     checkpoint = out / CHECKPOINT
     require(
         checkpoint.exists() and (out / CONFIG).exists(),
@@ -190,6 +190,7 @@ def _check_resumable(config: TrainConfig, out: Path) -> None:
         f"--resume: the run has spent its budget ({spent / 60:.1f} of --budget-minutes {config.budget_minutes:g}); "
         "give a larger --budget-minutes to continue it",
     )
+    return done, rows
 
 
 def _train(
@@ -202,16 +203,15 @@ def _train(
 ) -> Result:
     family = learner_family(config.learner.algo)
     _check_replay_fits(config, params)
+    rows: list[dict[str, float]] = []
     if out is not None and resume:
-        _check_resumable(config, out)
+        done, rows = _check_resumable(config, out)
     program = family.configure(config, params)
     runner = family.init(program, params, config.seed)
     total = jnp.int32(config.episodes)  # data, not part of the compiled program
-    rows: list[dict[str, float]] = []
     if out is not None:
         if resume:
             runner = load_checkpoint(out / CHECKPOINT, runner, family.replay_buffer(program, params))
-            done, rows = checkpointed_rows(out)
             require(
                 len(rows) == done // config.log_every * config.seeds,
                 f"--resume: '{out / METRICS}' is missing or lacks rows of the {done} episodes in the checkpoint; "
