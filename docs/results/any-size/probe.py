@@ -73,7 +73,7 @@ def main() -> None:
         elif row["policy"] != "random":
             size["scores"].append(f"{row['normalized_score']:.2f}")
             size["traps"].append(row["trap_contacts"])
-    line = f"{args.name} ({args.episodes} ep, {minutes:.1f} min): " + " | ".join(
+    line = f"{args.name} ({args.episodes} ep, {minutes:.1f} min training): " + " | ".join(
         f"{n}: {'/'.join(s['scores'])} tr {np.mean(s['traps']):.1f} ({s['oracle_traps']:.1f})" for n, s in sizes.items()
     )
     if args.stress:
