@@ -17,10 +17,10 @@ from roverswarm.algos.ppo_networks import flat_tokens, swarm_tokens
 from roverswarm.config import ANYSIZE, TrainConfig, validate, with_options
 from roverswarm.env import get_scenario, reset
 from roverswarm.env.entities import CLAIM, LEAD, TOKEN_FEATURES, nearest_entities, observe_entities
-from roverswarm.env.mars import step_env
+from roverswarm.env.mars import NEVER, step_env
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
-from roverswarm.learners.onpolicy import collect, configure, make_batch, size_cap
+from roverswarm.learners.onpolicy import _reset_all, collect, configure, make_batch, size_cap, training_params
 from roverswarm.runs import Run
 
 
@@ -115,6 +115,29 @@ def test_stop_when_complete_ends_an_episode_once_every_poi_is_observed(tiny_anys
         assert not rewards[last + 1 :].any()
 
 
+def test_fail_max_rovers_fails_and_shapes_only_the_small_swarms(tiny_anysize):
+    """--fail-max-rovers 3 over paper-2..4 with --fail-rate 1: every episode of 2 or 3 rovers
+    has one failing rover and none of 4 has; the unobserved shaping changes the rewards of the
+    small swarms only (the same keys give the same steps, since the shaping moves nothing)."""
+    many = dataclasses.replace(tiny_anysize, num_envs=20, fail_rate=1.0, fail_max_rovers=3)
+    params = validate(many)
+    config = configure(many, params)
+    state = _reset_all(config, training_params(config, params), jax.random.PRNGKey(3), jnp.asarray(0))
+    sizes = np.asarray(state.rover_mask).sum(-1)
+    assert {3, 4} <= set(sizes)
+    failing = (np.asarray(state.fail_step) < NEVER).sum(-1)
+    np.testing.assert_array_equal(failing, (sizes <= 3).astype(int))
+    actor = ppo.init_ppo(jax.random.PRNGKey(0), config, params.num_rovers, 0).actor
+    rewards = {}
+    for weight in (0.0, 1.0):
+        shaped = configure(with_options(many, {"unobserved_shaping": weight}), params)
+        traj = jax.jit(lambda k, c=shaped: collect(c, params, actor, k)[0])(jax.random.PRNGKey(3))
+        rewards[weight], sizes = np.asarray(traj.rewards), np.asarray(traj.rovers[0]).sum(-1)
+    charged = rewards[1.0] - rewards[0.0]  # [T, E, N]
+    np.testing.assert_array_equal(charged[:, sizes == 4], 0.0)
+    assert (charged[:, sizes <= 3] <= 1e-6).all() and (charged[:, sizes <= 3] < -1e-3).any()
+
+
 def test_size_curriculum_widens_the_range():
     config = configure(
         dataclasses.replace(ANYSIZE, size_curriculum=1000), validate(dataclasses.replace(ANYSIZE, size_curriculum=1000))
@@ -177,6 +200,13 @@ def test_a_flat_policy_refuses_another_size(tiny_ppo_config, tmp_path, capsys):
         ({"balance_sizes": True, "size_curriculum": 0, "scenario": "paper-3"}, "--balance-sizes needs a range"),
         ({"entity_heads": 3, "entity_dim": 8}, "must be >= 1 and divide --entity-dim"),
         ({"swarm_value": True, "algo": "ippo"}, "--swarm-value is MAPPO's centralised value over --network nearest"),
+        ({"fail_max_rovers": 3}, "--fail-max-rovers 3 limits --fail-rate to small swarms"),
+        ({"fail_max_rovers": -1, "fail_rate": 1.0}, "--fail-max-rovers must be >= 0"),
+        ({"size_draw_power": -1.0}, "size-draw-power"),
+        (
+            {"size_draw_power": 1.0, "scenario": "paper-3", "size_curriculum": 0, "balance_sizes": False},
+            "--size-draw-power needs a range",
+        ),
     ],
 )
 def test_bad_any_size_options_name_the_field(options, pattern):

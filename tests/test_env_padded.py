@@ -46,7 +46,9 @@ def pad(state: EnvState, n_max: int, key: jax.Array) -> EnvState:
 
 def active_part(obs, n: int, n_max: int):
     """The flat observations' columns of the first n POIs, traps and other rovers of a layout of n_max."""
-    cols = np.concatenate([np.arange(4 + 2 * n), 4 + 2 * n_max + np.arange(2 * n), 4 + 4 * n_max + np.arange(2 * n - 2)])
+    cols = np.concatenate(
+        [np.arange(4 + 2 * n), 4 + 2 * n_max + np.arange(2 * n), 4 + 4 * n_max + np.arange(2 * n - 2)]
+    )
     return np.asarray(obs)[..., cols]
 
 
@@ -55,7 +57,14 @@ def episode(state, actions, params):
 
     def body(state, a):
         obs, state, rewards, _, _, info = step_env(state, a, params)
-        return state, (obs, rewards, info["collisions"], info["trap_contacts"], info["coverage_distance"], state.observed)
+        return state, (
+            obs,
+            rewards,
+            info["collisions"],
+            info["trap_contacts"],
+            info["coverage_distance"],
+            state.observed,
+        )
 
     return jax.lax.scan(body, state, actions)[1]
 
@@ -120,7 +129,7 @@ def test_one_program_steps_a_batch_of_mixed_sizes():
         np.testing.assert_array_equal(last.poi_mask[row], exists)  # kept by the auto-reset
         assert not np.asarray(rewards)[row][:, ~exists].any()
         assert np.asarray(rewards)[row][:, exists].all()
-        assert np.all(np.asarray(pos)[row][:STEPS - 1, ~exists] == np.asarray(start.rover_pos)[row][~exists])
+        assert np.all(np.asarray(pos)[row][: STEPS - 1, ~exists] == np.asarray(start.rover_pos)[row][~exists])
         traps, rovers, pois = (np.asarray(x)[row][:n] for x in (start.trap_pos, start.rover_pos, start.poi_pos))
         assert np.linalg.norm(traps[:, None] - pois[None], axis=-1).min() >= 0.25 - 1e-6 or n == 0
         assert np.abs(rovers).max() <= 1.0
@@ -188,6 +197,7 @@ def test_a_failed_rover_never_moves_again_and_totals_match_a_plain_loop():
     failed = np.flatnonzero(np.asarray(state.fail_step) != NEVER)
     assert len(failed) == 1
     when = int(state.fail_step[failed[0]])
+
     # drive every rover hard towards the centre, so that contacts happen
     def body(state, k):
         a = jnp.clip(-3 * state.rover_pos + 0.3 * jax.random.normal(k, (4, 2)), -1, 1)
@@ -254,6 +264,16 @@ def test_sizes_beyond_ten_grow_the_map_to_keep_the_density():
     assert scenario_sizes("paper-2,8,4") == (2, 4, 8)
     sizes = np.asarray(draw_sizes(jax.random.PRNGKey(0), (2, 4, 8), 3000))
     assert set(np.unique(sizes)) == {2, 4, 8}
+
+
+@pytest.mark.parametrize("cap, expected", [(None, {2: 4 / 7, 4: 2 / 7, 8: 1 / 7}), (4, {2: 2 / 3, 4: 1 / 3})])
+def test_a_size_draw_power_draws_small_swarms_more_often(cap, expected):
+    """power 1: a size N with probability proportional to 1 / N, among the sizes up to the cap."""
+    sizes = np.asarray(draw_sizes(jax.random.PRNGKey(0), (2, 4, 8), 20_000, cap, power=1.0))
+    shares = {int(n): float(np.mean(sizes == n)) for n in np.unique(sizes)}
+    assert shares.keys() == expected.keys()
+    for n, share in expected.items():
+        assert shares[n] == pytest.approx(share, abs=0.015)
 
 
 @pytest.mark.parametrize(

@@ -77,6 +77,10 @@ class TrainConfig:
     fail_rate: float = 0.0
     """Probability per training episode that one rover, drawn uniformly, fails at a uniform
     step (it stops where it is; see docs/environment.md#rover-failures). Evaluation has none."""
+    fail_max_rovers: int = 0
+    """With a range scenario and --fail-rate: failures, and --unobserved-shaping with them, only
+    in episodes of at most this many rovers (the rover-loss lesson where a failure leaves fewer
+    rovers than POIs to visit; the paper's reward elsewhere); 0: every size."""
     stop_when_complete: bool = False
     """A training episode ends once every POI has been observed (a mission file's
     ``stop_when_complete``): no reward after, so finishing sooner pays and a swarm that lost a
@@ -84,6 +88,9 @@ class TrainConfig:
     size_curriculum: int = 0
     """With a range scenario: the largest swarm size drawn grows linearly from the range's
     smallest to its largest over this many episodes; 0 draws every size from the start."""
+    size_draw_power: float = 0.0
+    """With a range scenario: a swarm of N rovers is drawn with probability proportional to
+    N^-p (0: every size alike; 1: a swarm of 2 five times as often as one of 10)."""
     checkpoint_minutes: float = 10.0
     """A checkpoint is also written at the end of the first chunk that finishes this many
     minutes after the last one, so a killed long run loses at most about that much training;
@@ -232,10 +239,23 @@ def validate(config: TrainConfig) -> EnvParams:
     _positive(config, ("episodes", "seeds", "num_envs", "log_every", "checkpoint_every"))
     _finite(config.checkpoint_minutes, 0, "checkpoint-minutes")
     _finite(config.budget_minutes, 0, "budget-minutes")
-    require(0 <= config.fail_rate <= 1, f"--fail-rate must be in [0, 1] (a probability per episode), got {config.fail_rate}")
+    require(
+        0 <= config.fail_rate <= 1, f"--fail-rate must be in [0, 1] (a probability per episode), got {config.fail_rate}"
+    )
     require(config.size_curriculum >= 0, f"--size-curriculum must be >= 0 episodes, got {config.size_curriculum}")
+    _finite(config.size_draw_power, 0, "size-draw-power")
+    require(config.fail_max_rovers >= 0, f"--fail-max-rovers must be >= 0 rovers, got {config.fail_max_rovers}")
+    require(
+        config.fail_max_rovers == 0 or config.fail_rate > 0,
+        f"--fail-max-rovers {config.fail_max_rovers} limits --fail-rate to small swarms; give --fail-rate p > 0",
+    )
     mixed = config.mission is None and range_sizes(config.scenario) is not None
-    for option, on in (("size-curriculum", config.size_curriculum != 0), ("balance-sizes", config.ppo.balance_sizes)):
+    for option, on in (
+        ("size-curriculum", config.size_curriculum != 0),
+        ("balance-sizes", config.ppo.balance_sizes),
+        ("size-draw-power", config.size_draw_power != 0),
+        ("fail-max-rovers", config.fail_max_rovers != 0),
+    ):
         require(not on or mixed, f"--{option} needs a range of swarm sizes, such as --scenario paper-2..10")
     entity = config.learner
     require(

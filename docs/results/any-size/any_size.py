@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from roverswarm import train
-from roverswarm.config import PRESETS, TrainConfig
+from roverswarm.config import PRESETS, TrainConfig, with_options
 from roverswarm.evaluate import evaluate_run
 from roverswarm.experiments.sweep import figure, markdown, read_table
 from roverswarm.jaxcache import enable_compilation_cache
@@ -92,19 +92,20 @@ def table(run: Path, episodes: int, sizes=SIZES, setting: str = "anysize") -> li
     return rows
 
 
-def anysize(episodes: int, seeds: int, fail_rate: float = 0.0, shaping: float = 0.0, **ppo_changes) -> TrainConfig:
+def anysize(episodes: int, seeds: int, **options) -> TrainConfig:
     """The anysize preset for ``episodes`` per seed, its learning rates annealed over them, with
-    ``fail_rate`` (rover failures in training) and ``shaping`` (``--unobserved-shaping``)."""
-    preset = PRESETS["anysize"]
-    ppo = dataclasses.replace(preset.ppo, anneal_episodes=episodes, **ppo_changes)
-    learner = dataclasses.replace(preset.learner, unobserved_shaping=shaping)
-    return dataclasses.replace(preset, episodes=episodes, seeds=seeds, ppo=ppo, learner=learner, fail_rate=fail_rate)
+    ``options`` named as on the command line (``fail_rate``, ``unobserved_shaping``, ...)."""
+    base = dataclasses.replace(PRESETS["anysize"], episodes=episodes, seeds=seeds)
+    return with_options(base, {"anneal_episodes": episodes, **options})
 
 
 def setting(config: TrainConfig) -> str:
-    """The rows' setting: ``anysize``, with the failure rate and shaping when the run has them."""
-    extra = [f"fail {config.fail_rate:g}"] * (config.fail_rate > 0)
+    """The rows' setting: ``anysize``, with what the run changes of the rover-loss lesson and the
+    size draw when it has them."""
+    limit = f" up to {config.fail_max_rovers} rovers" if config.fail_max_rovers else ""
+    extra = [f"fail {config.fail_rate:g}{limit}"] * (config.fail_rate > 0)
     extra += [f"shaping {config.learner.unobserved_shaping:g}"] * (config.learner.unobserved_shaping > 0)
+    extra += [f"sizes N^-{config.size_draw_power:g}"] * (config.size_draw_power > 0)
     return " + ".join(["anysize", *extra])
 
 
@@ -158,6 +159,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=HERE / "any-size", help="output path without suffix")
     parser.add_argument("--fail-rate", type=float, default=0.0, help="rover failures in training (train --fail-rate)")
     parser.add_argument("--unobserved-shaping", type=float, default=0.0, help="train --unobserved-shaping")
+    parser.add_argument("--fail-max-rovers", type=int, default=0, help="train --fail-max-rovers")
+    parser.add_argument("--size-draw-power", type=float, default=0.0, help="train --size-draw-power")
     args = parser.parse_args()
     enable_compilation_cache()
     if args.specialists is not None:
@@ -169,7 +172,8 @@ def main() -> None:
     if args.run is None:
         parser.error("give --run (the one policy) or --specialists")
     if not (args.evaluate or args.stress_only):
-        config = anysize(args.episodes, args.seeds, args.fail_rate, args.unobserved_shaping)
+        options = ("fail_rate", "unobserved_shaping", "fail_max_rovers", "size_draw_power")
+        config = anysize(args.episodes, args.seeds, **{name: getattr(args, name) for name in options})
         train(config, out=args.run, resume=(args.run / CONFIG).exists())
     if not args.stress_only:
         rows = table(args.run, args.eval_episodes, setting=setting(read_config(args.run / CONFIG)))

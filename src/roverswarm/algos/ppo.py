@@ -118,7 +118,9 @@ class OnPolicyConfig:
     scenario: str = "paper-3"
     mission: str | None = None
     size_curriculum: int = 0
+    size_draw_power: float = 0.0
     fail_rate: float = 0.0
+    fail_max_rovers: int = 0
     stop_when_complete: bool = False
 
 

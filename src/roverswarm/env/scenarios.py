@@ -73,9 +73,7 @@ SCENARIOS: dict[str, Scenario] = {
 }
 
 
-_NAMES = (
-    f"one of {', '.join(SCENARIOS)}, paper-N (N in 2..{MAX_ROVERS}), a range paper-A..B or a list paper-A,B,C"
-)
+_NAMES = f"one of {', '.join(SCENARIOS)}, paper-N (N in 2..{MAX_ROVERS}), a range paper-A..B or a list paper-A,B,C"
 _RANGE = re.compile(r"paper-(\d+)\.\.(\d+)")
 _LIST = re.compile(r"paper-(\d+(?:,\d+)+)")
 _SINGLE = re.compile(r"paper-(\d+)")
@@ -139,11 +137,15 @@ def sized(params: EnvParams, n) -> EnvParams:
     return params.replace(active_rovers=n, active_pois=n, active_traps=n, map_size=paper_map_size(n))
 
 
-def draw_sizes(key: jax.Array, sizes: tuple[int, ...], count: int, cap=None) -> jax.Array:
-    """[count] swarm sizes drawn uniformly from ``sizes`` (ascending); with ``cap`` (traced),
-    from those at most ``cap`` (the smallest if none is)."""
+def draw_sizes(key: jax.Array, sizes: tuple[int, ...], count: int, cap=None, power: float = 0.0) -> jax.Array:
+    """[count] swarm sizes drawn from ``sizes`` (ascending): uniformly, or with ``power`` p a
+    size N with probability proportional to N^-p; with ``cap`` (traced), from those at most
+    ``cap`` (the smallest if none is)."""
     choices = len(sizes) if cap is None else jnp.maximum(jnp.sum(jnp.asarray(sizes) <= cap), 1)
-    return jnp.asarray(sizes, jnp.int32)[jax.random.randint(key, (count,), 0, choices)]
+    if power == 0:  # the uniform draw as before the power existed: the same sizes for the same key
+        return jnp.asarray(sizes, jnp.int32)[jax.random.randint(key, (count,), 0, choices)]
+    logits = jnp.where(jnp.arange(len(sizes)) < choices, -power * jnp.log(jnp.asarray(sizes, jnp.float32)), -jnp.inf)
+    return jnp.asarray(sizes, jnp.int32)[jax.random.categorical(key, logits, shape=(count,))]
 
 
 def scenario_table() -> list[dict[str, object]]:

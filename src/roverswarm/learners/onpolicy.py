@@ -144,7 +144,8 @@ def size_cap(config: OnPolicyConfig, episodes: jax.Array) -> jax.Array:
 
 def training_params(config: OnPolicyConfig, params: EnvParams) -> EnvParams:
     """The environment training steps: ``params`` with --fail-rate (one rover may fail in each
-    episode) and --stop-when-complete (an episode ends once every POI is observed)."""
+    episode; with --fail-max-rovers only in small swarms, per episode at reset) and
+    --stop-when-complete (an episode ends once every POI is observed)."""
     if config.fail_rate > 0:
         params = params.replace(fail_rate=config.fail_rate)
     return params.replace(terminate_on_complete=params.terminate_on_complete or config.stop_when_complete)
@@ -157,8 +158,28 @@ def _reset_all(config: OnPolicyConfig, params: EnvParams, key: jax.Array, episod
     sizes = sizes_of(config)
     if sizes is None:
         return jax.vmap(reset, in_axes=(0, None))(keys, params)[1]
-    counts = draw_sizes(jax.random.fold_in(key, 1), sizes, config.num_envs, size_cap(config, episodes))
-    return jax.vmap(lambda k, n: reset(k, sized(params, n)))(keys, counts)[1]
+    counts = draw_sizes(
+        jax.random.fold_in(key, 1), sizes, config.num_envs, size_cap(config, episodes), config.size_draw_power
+    )
+    return jax.vmap(lambda k, n: reset(k, _failures_up_to(config, sized(params, n), n)))(keys, counts)[1]
+
+
+def _failures_up_to(config: OnPolicyConfig, params: EnvParams, rovers) -> EnvParams:
+    """One episode's ``params`` of ``rovers`` rovers: with --fail-max-rovers K, no failures
+    in a swarm of more than K."""
+    if config.fail_max_rovers == 0 or params.fail_rate is None:
+        return params
+    return params.replace(fail_rate=jnp.where(rovers <= config.fail_max_rovers, params.fail_rate, 0.0))
+
+
+def _training_rewards(config: OnPolicyConfig, rewards: jax.Array, info, exists: jax.Array) -> jax.Array:
+    """[E, N] the rewards learned from (:func:`~roverswarm.metrics.shaped_rewards`); with
+    --fail-max-rovers K the unobserved shaping only in swarms of at most K rovers (``exists``
+    [E, N] counts them)."""
+    if config.fail_max_rovers:
+        small = jnp.sum(exists, axis=-1) <= config.fail_max_rovers
+        info = {**info, "unobserved_distance": jnp.where(small, info["unobserved_distance"], 0.0)}
+    return shaped_rewards(rewards, info, config.learner)
 
 
 def collect(
@@ -193,7 +214,7 @@ def collect(
             obs=obs,
             actions=actions,
             log_probs=gaussian_log_prob(actions, mean, log_std),
-            rewards=shaped_rewards(rewards, info, config.learner) * live[:, None],
+            rewards=_training_rewards(config, rewards, info, exists) * live[:, None],
             next_obs=next_obs,
             terminated=terminated & live,
             truncated=truncated & live,
