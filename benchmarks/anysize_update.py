@@ -8,7 +8,7 @@ random advantages and standardised value targets, and about a tenth of the sampl
 out (as absent rovers of a mixed-size batch). In one run:
 
 * ``ours``: :func:`roverswarm.algos.ppo.update_minibatch`, jitted, with the preset's
-  on-policy config: Flax MLPs over :func:`~roverswarm.algos.ppo_networks.flat_tokens`,
+  on-policy config: Flax MLPs over :func:`~roverswarm.env.entities.flat_tokens`,
   optax's global-norm clipping and Adam;
 * ``reference``: the same update written below in plain ``jax.numpy`` (no Flax, no optax):
   the tanh MLPs (2 x 128) on the same parameter dicts, the Gaussian log-probability and

@@ -13,10 +13,10 @@ import pytest
 
 from roverswarm import train
 from roverswarm.algos import ppo
-from roverswarm.algos.ppo_networks import flat_tokens, swarm_tokens
+from roverswarm.algos.ppo_networks import swarm_tokens
 from roverswarm.config import ANYSIZE, TrainConfig, validate, with_options
 from roverswarm.env import get_scenario, reset
-from roverswarm.env.entities import CLAIM, LEAD, TOKEN_FEATURES, nearest_entities, observe_entities
+from roverswarm.env.entities import CLAIM, LEAD, TOKEN_FEATURES, flat_tokens, nearest_entities, observe_entities
 from roverswarm.env.mars import NEVER, step_env
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
@@ -223,7 +223,7 @@ def test_bad_any_size_options_name_the_field(options, pattern):
     ],
 )
 def test_the_off_policy_family_refuses_entity_networks_failures_and_stops_for_now(options, option):
-    with pytest.raises(UserError, match=f"^{option}: --algo maddpg has only the flat view's networks, no failures"):
+    with pytest.raises(UserError, match=f"^{option}: --algo maddpg has only the flat view.s and --network nearest.s"):
         validate(with_options(TrainConfig(), options))
 
 

@@ -63,8 +63,11 @@ KINDS = {  # every actor kind: per-rover and shared off-policy actors, the on-po
     "ippo": tiny(IPPO, {"hidden": (16, 16), "activation": "relu"}, "paper-2"),
     "entity": tiny(ANYSIZE, {**ENTITY, "hidden": (16,)}, "paper-2..4"),
     "nearest": tiny(ANYSIZE, {"hidden": (16,), "entity_nearest": 2}, "paper-2..4"),
+    "maddpg-nearest": tiny(
+        SWARM, {"network": "nearest", "entity_nearest": 2, "critic_neighbors": 1, "normalize_obs": True}, "paper-3"
+    ),
 }
-EPISODE_SCENARIO = {"entity": "paper-5", "nearest": "paper-5"}  # any-size policies: a size they never saw
+EPISODE_SCENARIO = {"entity": "paper-5", "nearest": "paper-5", "maddpg-nearest": "paper-5"}  # a size never trained on
 
 
 def make_run(config: TrainConfig, folder: Path, episodes_done: int | None = None) -> Path:

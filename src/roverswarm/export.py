@@ -113,20 +113,23 @@ def _off_policy(config: TrainConfig) -> bool:
 def policy_model(config: TrainConfig, params: EnvParams, actor, obs_norm, doc: str):
     """The ONNX model of ``actor`` (one seed's parameters) trained by ``config`` on ``params``:
     an off-policy actor (tanh; one per rover [N, ...] or one shared [1, ...] with rover ids,
-    the observation normaliser first) or the on-policy family's (a Gaussian's mean, clipped;
-    the flat view with rover ids, or the entity or nearest view)."""
+    or shared over the nearest view; the observation normaliser first) or the on-policy
+    family's (a Gaussian's mean, clipped; the flat view with rover ids, or the entity or
+    nearest view)."""
     graphs = _onnx()
     learner = config.learner
+    k, n, o = learner.entity_nearest, params.num_rovers, observation_size(params)
     if learner.network == "entity":
         return graphs.entity_actor(actor["net"]["params"], learner.entity_heads, doc)
-    if learner.network == "nearest":
-        return graphs.nearest_actor(actor["params"]["MLP_0"], learner.entity_nearest, config.ppo.activation, doc)
-    n, o = params.num_rovers, observation_size(params)
     if not _off_policy(config):
+        if learner.network == "nearest":
+            return graphs.nearest_actor(actor["params"]["MLP_0"], k, config.ppo.activation, "clip", None, doc)
         return graphs.flat_actor(actor["params"]["MLP_0"], n, o, False, config.ppo.activation, "clip", None, doc)
     per_rover = not learner.share_parameters
     mlp = actor["params"] if per_rover else jax.tree.map(lambda x: x[0], actor["params"])
     norm = None if obs_norm is None else (np.asarray(obs_norm.mean), np.asarray(std(obs_norm)))
+    if learner.network == "nearest":  # shared (--share-parameters), without rover ids
+        return graphs.nearest_actor(mlp, k, "relu", "tanh", norm, doc)
     return graphs.flat_actor(mlp, n, o, per_rover, "relu", "tanh", norm, doc)
 
 

@@ -87,7 +87,8 @@ class AlgoConfig:
     """`mlp`: networks on the flat view, tied to the swarm size they trained on; `entity`:
     attention over the entity view (other rovers, POIs, traps as tokens, no rover ids);
     `nearest`: an MLP over the --entity-nearest K nearest of each type, nearest first. The last
-    two serve any swarm size (MAPPO and IPPO)."""
+    two serve any swarm size (MAPPO and IPPO; `nearest` also MADDPG and DDPG with
+    --share-parameters, on one swarm size in training)."""
     entity_dim: int = 64
     """--network entity: width of the entity embeddings (the encoder's output is twice this)."""
     entity_heads: int = 4
@@ -149,10 +150,16 @@ def groups(config: AlgoConfig, num_agents: int) -> int:
     return 1 if config.share_parameters else num_agents
 
 
+def _indexed(config: AlgoConfig) -> bool:
+    """Whether shared networks see the rover's one-hot index: over the flat view only (the
+    nearest view has no rover order to tell apart, and its width serves any swarm size)."""
+    return config.share_parameters and config.network == "mlp"
+
+
 def actor_inputs(config: AlgoConfig, obs: jax.Array) -> jax.Array:
     """What the actors see of [..., N, O] observations: the observation, and with shared
-    parameters the rover's one-hot index after it ([..., N, O + N])."""
-    if not config.share_parameters:
+    parameters over the flat view the rover's one-hot index after it ([..., N, O + N])."""
+    if not _indexed(config):
         return obs
     n = obs.shape[-2]
     return jnp.concatenate([obs, jnp.broadcast_to(jnp.eye(n, dtype=obs.dtype), (*obs.shape[:-2], n, n))], axis=-1)
@@ -160,8 +167,9 @@ def actor_inputs(config: AlgoConfig, obs: jax.Array) -> jax.Array:
 
 def critic_inputs(config: AlgoConfig, obs: jax.Array, actions: jax.Array, agent: jax.Array) -> jax.Array:
     """What agent ``agent``'s critic sees: [B, N, O] observations and [B, N, A] actions -> [B, D].
-    Shared parameters: own-first order and the one-hot index appended. ``critic_neighbors``
-    K > 0: the agent and its K nearest other rovers, nearest first, in each transition."""
+    Shared parameters: own-first order and, over the flat view, the one-hot index appended.
+    ``critic_neighbors`` K > 0: the agent and its K nearest other rovers, nearest first, in each
+    transition."""
     batch, n = obs.shape[:2]
     if config.algo == "ddpg":
         inputs = [obs[:, agent], actions[:, agent]]
@@ -178,7 +186,7 @@ def critic_inputs(config: AlgoConfig, obs: jax.Array, actions: jax.Array, agent:
         inputs = [obs[:, order].reshape(batch, -1), actions[:, order].reshape(batch, -1)]
     else:
         inputs = [obs.reshape(batch, -1), actions.reshape(batch, -1)]
-    if config.share_parameters:
+    if _indexed(config):
         inputs.append(jnp.broadcast_to(jax.nn.one_hot(agent, n, dtype=obs.dtype), (batch, n)))
     return jnp.concatenate(inputs, axis=-1)
 

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 
 from roverswarm.algos.entity import EntityConfig, make_entity_networks
 from roverswarm.algos.learner import AlgoConfig
-from roverswarm.env.entities import OWN_FEATURES, TOKEN_FEATURES, nearest_entities, observe_entities
+from roverswarm.env.entities import flat_tokens, nearest_width, observe_entities, observe_nearest
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, EnvState, observe
 
 
@@ -164,8 +164,9 @@ def _entity_kind(learner: AlgoConfig, config: Any) -> PolicyNetworks:
         return nets.actor(params["net"], view.own, view.tokens, view.mask), params["log_std"]
 
     def view(state, params):
-        every = observe_entities(state, params)
-        return every if learner.entity_nearest == 0 else nearest_entities(every, params, learner.entity_nearest)
+        if learner.entity_nearest == 0:
+            return observe_entities(state, params)
+        return observe_nearest(state, params, learner.entity_nearest)
 
     return PolicyNetworks(
         observe=view,
@@ -176,14 +177,6 @@ def _entity_kind(learner: AlgoConfig, config: Any) -> PolicyNetworks:
         value=lambda params, view: nets.value(params, view.own, view.tokens, view.mask),
         any_size=True,
     )
-
-
-def flat_tokens(view) -> jax.Array:
-    """An entity view [..., M, F] as one vector per rover [..., 4 + M * F + M]: own features,
-    the tokens (zero where empty) in their order, and the mask."""
-    tokens = jnp.where(view.mask[..., None], view.tokens, 0.0)
-    flat = tokens.reshape(*tokens.shape[:-2], -1)
-    return jnp.concatenate([view.own, flat, view.mask.astype(flat.dtype)], axis=-1)
 
 
 def swarm_tokens(view) -> jax.Array:
@@ -205,11 +198,11 @@ def _nearest_kind(learner: AlgoConfig, config: Any) -> PolicyNetworks:
     critic_inputs = swarm_tokens if config.swarm_value else flat_tokens
 
     def view(state, params):
-        return nearest_entities(observe_entities(state, params), params, k)
+        return observe_nearest(state, params, k)
 
     def init(key, num_rovers, obs_size):
         k_actor, k_critic = jax.random.split(key)
-        width = OWN_FEATURES + 3 * k * (TOKEN_FEATURES + 1)
+        width = nearest_width(k)
         critic_width = 2 * width + 1 if config.swarm_value else width
         return actor_net.init(k_actor, jnp.zeros((width,))), critic_net.init(k_critic, jnp.zeros((critic_width,)))
 

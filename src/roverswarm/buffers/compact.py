@@ -26,7 +26,10 @@ the sampled transitions only, with the environment's own observation function. O
 depend on nothing else (not on time, failures or what was observed), so the batches are the
 stored ones bit for bit (``tests/test_compact_replay.py`` checks this against a replay of
 full observations for every replay kind). Bytes per transition: 151 instead of 1,341 at N = 5,
-298 instead of 5,081 at N = 10 (``benchmarks/replay_memory.py``).
+298 instead of 5,081 at N = 10 (``benchmarks/replay_memory.py``). A view that also shows which
+POIs were observed (the nearest view of ``--network nearest``) needs those too: with
+``init(..., observed=True)`` every step keeps its [P] flags and every episode its last ones,
+and :func:`expand` rebuilds the view from them (``tests/test_offpolicy_nearest.py``).
 
 The buffers store any record with a ``policy`` field, so every replay kind (uniform, ranked,
 partitioned for policy ensembles) keeps ``Step`` unchanged; the episode table rides in
@@ -36,14 +39,14 @@ partitioned for policy ensembles) keeps ``Step`` unchanged; the episode table ri
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
 from flax import struct
 
 from roverswarm.buffers.base import Buffer, BufferState, Transition, gather
-from roverswarm.env.mars import ACTION_SIZE, EnvParams, EnvState, observe_positions
+from roverswarm.env.mars import ACTION_SIZE, NEVER, EnvParams, EnvState, observe_positions
 
 
 @struct.dataclass
@@ -56,6 +59,7 @@ class Step:
     terminated: jax.Array  # [...] bool; a truncation is not a termination
     where: jax.Array  # [...] int32, episode slot * T + step index in the episode
     policy: Any = None  # [..., N] int32 sub-policy each agent ran (policy ensembles only)
+    observed: Any = None  # [..., P] bool POIs observed before the step (a view that shows them only)
 
 
 @struct.dataclass
@@ -65,6 +69,7 @@ class Episodes:
     layout: jax.Array  # [L, X, 2] the episode's POIs, then its traps
     final: jax.Array  # [L, N, 4] every rover's velocity and position after the last step
     position: jax.Array  # [] int32, the slot of the next episode added
+    final_observed: Any = None  # [L, P] bool POIs observed after the last step (a view that shows them)
 
 
 @struct.dataclass
@@ -78,6 +83,8 @@ class Collected:
     layout: jax.Array  # [E, X, 2]
     final: jax.Array  # [E, N, 4] after the last step
     policy: Any = None  # [E, N] int32 (policy ensembles only)
+    observed: Any = None  # [T, E, P] bool before each step (a view that shows them only)
+    final_observed: Any = None  # [E, P] bool after the last step
 
 
 def rovers_of(state: EnvState) -> jax.Array:
@@ -95,9 +102,11 @@ def episode_slots(capacity: int, num_envs: int, max_steps: int) -> int:
     return num_envs * math.ceil(capacity / (num_envs * max_steps))
 
 
-def init(buffer: Buffer, params: EnvParams, num_envs: int) -> BufferState:
-    """An empty compact replay of ``buffer``'s kind for ``params``'s swarm."""
-    n = params.num_rovers
+def init(buffer: Buffer, params: EnvParams, num_envs: int, observed: bool = False) -> BufferState:
+    """An empty compact replay of ``buffer``'s kind for ``params``'s swarm; with ``observed``,
+    it also keeps which POIs were observed (for a view that shows them, such as
+    :func:`~roverswarm.env.entities.observe_nearest`)."""
+    n, p = params.num_rovers, params.num_pois
     example = Step(
         rovers=jnp.zeros((n, 4)),
         actions=jnp.zeros((n, ACTION_SIZE)),
@@ -105,12 +114,14 @@ def init(buffer: Buffer, params: EnvParams, num_envs: int) -> BufferState:
         terminated=jnp.zeros((), bool),
         where=jnp.zeros((), jnp.int32),
         policy=jnp.zeros((n,), jnp.int32) if buffer.num_policies > 1 else None,
+        observed=jnp.zeros((p,), bool) if observed else None,
     )
     slots = episode_slots(buffer.capacity, num_envs, params.max_steps)
     episodes = Episodes(
         layout=jnp.zeros((slots, params.num_pois + params.num_traps, 2)),
         final=jnp.zeros((slots, n, 4)),
         position=jnp.zeros((), jnp.int32),
+        final_observed=jnp.zeros((slots, p), bool) if observed else None,
     )
     return buffer.init(example).replace(episodes=episodes)
 
@@ -122,40 +133,58 @@ def add(buffer: Buffer, state: BufferState, batch: Collected) -> BufferState:
     slots = (table.position + jnp.arange(envs)) % table.layout.shape[0]  # [E]
     where = slots[None, :] * steps + jnp.arange(steps)[:, None]  # [T, E]
     policy = None if batch.policy is None else jnp.broadcast_to(batch.policy, (steps, *batch.policy.shape))
-    records = Step(batch.rovers, batch.actions, batch.rewards, batch.terminated, where, policy)
+    records = Step(batch.rovers, batch.actions, batch.rewards, batch.terminated, where, policy, batch.observed)
     state = buffer.add(state, jax.tree.map(lambda x: x.reshape(steps * envs, *x.shape[2:]), records))
+    final_observed = None
+    if batch.final_observed is not None:
+        final_observed = table.final_observed.at[slots].set(batch.final_observed)
     table = Episodes(
         layout=table.layout.at[slots].set(batch.layout),
         final=table.final.at[slots].set(batch.final),
         position=(table.position + envs) % table.layout.shape[0],
+        final_observed=final_observed,
     )
     return state.replace(episodes=table)
 
 
-def expand(state: BufferState, indices: jax.Array, params: EnvParams, num_envs: int) -> Transition:
-    """The transitions at ring ``indices`` (any shape), observations rebuilt."""
+def expand(
+    state: BufferState, indices: jax.Array, params: EnvParams, num_envs: int, view: Callable | None = None
+) -> Transition:
+    """The transitions at ring ``indices`` (any shape), observations rebuilt: the flat view,
+    or ``view`` (state, params) -> [N, O] of a replay that keeps the observed POIs (``init(...,
+    observed=True)``; a state without failures, at step 0: such views do not read the time)."""
     step = gather(state, indices)
     capacity = state.data.rovers.shape[0]
     slot, t = jnp.divmod(step.where, params.max_steps)
-    following = state.data.rovers[(indices + num_envs) % capacity]  # the episode's next step
-    last = (t == params.max_steps - 1)[..., None, None]
-    next_rovers = jnp.where(last, state.episodes.final[slot], following)
+    following = (indices + num_envs) % capacity  # the episode's next step
+    last = t == params.max_steps - 1
+    next_rovers = jnp.where(last[..., None, None], state.episodes.final[slot], state.data.rovers[following])
     layout = state.episodes.layout[slot]
     lead = indices.shape
 
-    def observations(rovers: jax.Array) -> jax.Array:
+    def observations(rovers: jax.Array, observed: jax.Array | None) -> jax.Array:
         rovers, items = rovers.reshape(-1, *rovers.shape[-2:]), layout.reshape(-1, *layout.shape[-2:])
         poi, trap = items[:, : params.num_pois], items[:, params.num_pois :]
-        obs = jax.vmap(observe_positions, in_axes=(0, 0, 0, 0, None))(
-            rovers[..., 2:], rovers[..., :2], poi, trap, params
-        )
+        if view is None:
+            obs = jax.vmap(observe_positions, in_axes=(0, 0, 0, 0, None))(
+                rovers[..., 2:], rovers[..., :2], poi, trap, params
+            )
+        else:
+            never = jnp.full((params.num_rovers,), NEVER, jnp.int32)
+            states = jax.vmap(
+                lambda r, pp, tt, o: EnvState(r[:, 2:], r[:, :2], pp, tt, o, jnp.zeros((), jnp.int32), never)
+            )(rovers, poi, trap, observed.reshape(-1, params.num_pois))
+            obs = jax.vmap(view, in_axes=(0, None))(states, params)
         return obs.reshape(*lead, *obs.shape[-2:])
 
+    next_observed = None
+    if view is not None:
+        next_observed = jnp.where(last[..., None], state.episodes.final_observed[slot], state.data.observed[following])
     return Transition(
-        obs=observations(step.rovers),
+        obs=observations(step.rovers, step.observed),
         actions=step.actions,
         rewards=step.rewards,
-        next_obs=observations(next_rovers),
+        next_obs=observations(next_rovers, next_observed),
         terminated=step.terminated,
         policy=step.policy,
     )

@@ -177,3 +177,23 @@ def nearest_entities(view: EntityView, params: EnvParams, k: int) -> EntityView:
         tokens.append(jnp.where(exists[..., None], jnp.take_along_axis(group, order[..., None], axis=-2), 0.0))
         masks.append(exists)
     return EntityView(own=view.own, tokens=jnp.concatenate(tokens, axis=-2), mask=jnp.concatenate(masks, axis=-1))
+
+
+def flat_tokens(view: EntityView) -> jax.Array:
+    """An entity view [..., M, F] as one vector per rover [..., 4 + M * F + M]: own features,
+    the tokens (zero where empty) in their order, and the mask."""
+    tokens = jnp.where(view.mask[..., None], view.tokens, 0.0)
+    flat = tokens.reshape(*tokens.shape[:-2], -1)
+    return jnp.concatenate([view.own, flat, view.mask.astype(flat.dtype)], axis=-1)
+
+
+def nearest_width(k: int) -> int:
+    """Width of :func:`flat_tokens` of a view of ``k`` tokens of each type: own features, then
+    3k tokens and their mask."""
+    return OWN_FEATURES + 3 * k * (TOKEN_FEATURES + 1)
+
+
+def observe_nearest(state: EnvState, params: EnvParams, k: int) -> EntityView:
+    """Every rover's view of its ``k`` nearest other rovers, POIs and traps
+    (:func:`nearest_entities` of :func:`observe_entities`): [N, 3k, F] for any swarm size."""
+    return nearest_entities(observe_entities(state, params), params, k)

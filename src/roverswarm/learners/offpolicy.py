@@ -18,9 +18,11 @@ per environment step is the same whatever E is: one update of every agent per
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 from functools import partial
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -37,7 +39,9 @@ from roverswarm.buffers.base import (
     newest_fraction,
     recent_indices,
 )
+from roverswarm.env.entities import EntityView, flat_tokens, nearest_width, observe_nearest
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, reset, step_env
+from roverswarm.env.scenarios import range_sizes
 from roverswarm.errors import require, require_finite, require_positive
 from roverswarm.learners.base import Family, Runner, seed_keys, start_runner
 from roverswarm.metrics import episode_totals, reduce_metric, shaped_rewards, step_stats
@@ -85,16 +89,28 @@ def check(config, params: EnvParams) -> None:
     learner, replay = config.learner, config.buffer
     steps = config.num_envs * params.max_steps
     unsupported = {
-        f"--network {learner.network}": learner.network != "mlp",
+        f"--network {learner.network}": learner.network == "entity",
+        f"--scenario {config.scenario}": config.mission is None and range_sizes(config.scenario) is not None,
         f"--fail-rate {config.fail_rate}": config.fail_rate > 0,
         "--stop-when-complete": config.stop_when_complete,
     }
     for option, given in unsupported.items():
         require(
             not given,
-            f"{option}: --algo {learner.algo} has only the flat view's networks, no failures and fixed-length "
-            "episodes yet; use --algo mappo or ippo (--preset anysize)",
+            f"{option}: --algo {learner.algo} has only the flat view's and --network nearest's networks, one swarm "
+            "size per run, no failures and fixed-length episodes yet; use --algo mappo or ippo (--preset anysize)",
         )
+    nearest = learner.network == "nearest"
+    require(
+        not nearest or learner.share_parameters,
+        f"--network nearest with --algo {learner.algo} needs --share-parameters: one actor and one critic for "
+        "every rover, without its index, so that the actor drives any swarm size",
+    )
+    require(
+        not nearest or learner.algo == "ddpg" or learner.critic_neighbors >= 1,
+        "--network nearest with --algo maddpg needs --critic-neighbors C >= 1: the critic sees the rover and its C "
+        "nearest other rovers, nearest first, the same under any order of the rovers",
+    )
     require(replay.replay in ("uniform", "ranked"), f"--replay must be 'uniform' or 'ranked', got '{replay.replay}'")
     require(replay.reading in ("paper", "schaul"), f"--reading must be 'paper' or 'schaul', got '{replay.reading}'")
     require(replay.alpha >= 0, f"--alpha must be >= 0, got {replay.alpha}")
@@ -170,17 +186,44 @@ def _buffer(config: OffPolicyConfig, params: EnvParams) -> Buffer:
     return make_buffer(config.buffer, params.num_rovers, config.learner.ensemble)
 
 
+@functools.lru_cache(maxsize=None)
+def view_of(learner: AlgoConfig) -> Callable | None:
+    """What a policy of ``learner`` sees, (state, params) -> its view, when it is not the flat
+    view: with --network nearest, the --entity-nearest K nearest of each type
+    (:func:`~roverswarm.env.entities.observe_nearest`; any swarm size). None: the flat view.
+    One function per config, so programs that close over it are reused."""
+    return partial(observe_nearest, k=learner.entity_nearest) if learner.network == "nearest" else None
+
+
+@functools.lru_cache(maxsize=None)
+def vector_view(learner: AlgoConfig) -> Callable | None:
+    """:func:`view_of` as the networks and the replay read it, one vector per rover
+    (:func:`~roverswarm.env.entities.flat_tokens`); None: the flat view."""
+    view = view_of(learner)
+    return None if view is None else lambda state, params: flat_tokens(view(state, params))
+
+
+def _replay(config: OffPolicyConfig, params: EnvParams) -> BufferState:
+    """One seed's empty compact replay; it keeps the observed POIs when the view shows them."""
+    return compact.init(_buffer(config, params), params, config.num_envs, view_of(config.learner) is not None)
+
+
+def _sizes(learner: AlgoConfig, params: EnvParams) -> tuple[int, int]:
+    """(N, O): the agents and the width of one rover's observation in ``learner``'s view."""
+    width = observation_size(params) if view_of(learner) is None else nearest_width(learner.entity_nearest)
+    return params.num_rovers, width
+
+
 def init(config: OffPolicyConfig, params: EnvParams, seed: int) -> Runner:
     """Fresh networks and empty replays for every seed of base seed ``seed``."""
-    buffer = _buffer(config, params)
-    buffers = jax.vmap(lambda _: compact.init(buffer, params, config.num_envs))(jnp.arange(config.seeds))
-    sizes = (params.num_rovers, observation_size(params))
+    buffers = jax.vmap(lambda _: _replay(config, params))(jnp.arange(config.seeds))
+    sizes = _sizes(config.learner, params)
     return start_runner(seed, config.seeds, lambda key: init_learner(key, config.learner, *sizes), buffers)
 
 
 def learners(config: OffPolicyConfig, params: EnvParams) -> LearnerState:
     """Every seed's fresh networks [S, ...] (a checkpoint's template)."""
-    sizes = (params.num_rovers, observation_size(params))
+    sizes = _sizes(config.learner, params)
     return jax.vmap(lambda key: init_learner(key, config.learner, *sizes))(seed_keys(0, config.seeds)[:, 0])
 
 
@@ -189,7 +232,7 @@ def replay_bytes(config, params: EnvParams) -> tuple[int, int, int]:
     stored transitions and episodes, and the sampling state of the ranked replay and the
     ensembles' partitions, from their shapes (nothing is allocated)."""
     buffer = run_buffer(config, params)
-    shapes = jax.eval_shape(lambda: compact.init(buffer, params, config.num_envs))
+    shapes = jax.eval_shape(lambda: _replay(configure(config, params), params))
     per_transition = math.ceil(compact.nbytes(shapes) / buffer.capacity)
     return config.seeds * buffer.capacity * per_transition, buffer.capacity, per_transition
 
@@ -222,6 +265,12 @@ def collect(config: OffPolicyConfig, params: EnvParams, learner: LearnerState, k
     """
     k_reset, k_steps = jax.random.split(key)
     obs, state = jax.vmap(reset, in_axes=(0, None))(jax.random.split(k_reset, config.num_envs), params)
+    view = vector_view(config.learner)
+
+    def see(flat, states):  # what the actors see: the flat view, or the learner's own
+        return flat if view is None else jax.vmap(view, in_axes=(0, None))(states, params)
+
+    obs = see(obs, state)
     k = config.learner.ensemble
     policy = None
     if k > 1:
@@ -235,13 +284,15 @@ def collect(config: OffPolicyConfig, params: EnvParams, learner: LearnerState, k
             state, actions, params
         )
         learned = shaped_rewards(rewards, info, config.learner)
-        stored = (compact.rovers_of(state), actions, learned, terminated)
-        return (next_obs, next_state), (stored, obs, step_stats(rewards, info))
+        stored = (compact.rovers_of(state), actions, learned, terminated, state.observed)
+        return (see(next_obs, next_state), next_state), (stored, obs, step_stats(rewards, info))
 
     (_, last), (steps, observations, stats) = jax.lax.scan(
         body, (obs, state), jax.random.split(k_steps, params.max_steps)
     )
-    collected = compact.Collected(*steps, compact.layout_of(state), compact.rovers_of(last), policy)
+    *steps, observed = steps
+    kept = {} if view is None else {"observed": observed, "final_observed": last.observed}
+    collected = compact.Collected(*steps, compact.layout_of(state), compact.rovers_of(last), policy, **kept)
     return collected, observations, episode_totals(stats)
 
 
@@ -263,7 +314,9 @@ def learn(
     error before the update) or per sampling group [N * K] (what was sampled: its mean and
     max TD loss, and the fraction drawn from the newest 10% of the replay). A group with an
     empty partition gets zero weights, so it changes nothing."""
-    expand = partial(compact.expand, buffer_state, params=params, num_envs=config.num_envs)
+    expand = partial(
+        compact.expand, buffer_state, params=params, num_envs=config.num_envs, view=vector_view(config.learner)
+    )
     batch = expand(draw.indices)
     weights = (
         importance_weights(draw, exponent) if config.buffer.importance_weights else jnp.ones(draw.probabilities.shape)
@@ -360,8 +413,11 @@ def metric_names(learner: AlgoConfig) -> tuple[str, ...]:
     return LEARNER_METRICS + (INFER_METRICS if learner.infer_policies else ())
 
 
-def _act(learner: AlgoConfig, weights, obs: jax.Array, plan) -> jax.Array:
+def _act(learner: AlgoConfig, weights, obs, plan) -> jax.Array:
+    """Actions of ``obs``: the flat view [..., N, O], or the nearest view (:func:`view_of`)."""
     actor, obs_norm = weights
+    if isinstance(obs, EntityView):
+        obs = flat_tokens(obs)
     return act(learner, actor, obs, plan, obs_norm)
 
 
@@ -374,7 +430,7 @@ FAMILY = Family(
     learners=learners,
     acting=lambda config: config.learner,
     act=_act,
-    view=lambda acting: None,
+    view=view_of,
     weights=lambda state: (state.actor, state.obs_norm),
     metric_names=metric_names,
     replay=True,
