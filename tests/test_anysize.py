@@ -202,6 +202,7 @@ def test_a_flat_policy_refuses_another_size(tiny_ppo_config, tmp_path, capsys):
         ({"swarm_value": True, "algo": "ippo"}, "--swarm-value is MAPPO's centralised value over --network nearest"),
         ({"fail_max_rovers": 3}, "--fail-max-rovers 3 limits --fail-rate to small swarms"),
         ({"fail_max_rovers": -1, "fail_rate": 1.0}, "--fail-max-rovers must be >= 0"),
+        ({"fail_max_rovers": 10, "fail_rate": 1.0}, r"--fail-max-rovers 10 must be in \[2, 9\]"),
         ({"size_draw_power": -1.0}, "size-draw-power"),
         (
             {"size_draw_power": 1.0, "scenario": "paper-3", "size_curriculum": 0, "balance_sizes": False},

@@ -64,7 +64,7 @@ KINDS = {  # every actor kind: per-rover and shared off-policy actors, the on-po
     "entity": tiny(ANYSIZE, {**ENTITY, "hidden": (16,)}, "paper-2..4"),
     "nearest": tiny(ANYSIZE, {"hidden": (16,), "entity_nearest": 2}, "paper-2..4"),
     "maddpg-nearest": tiny(
-        SWARM, {"network": "nearest", "entity_nearest": 2, "critic_neighbors": 1, "normalize_obs": True}, "paper-3"
+        SWARM, {"network": "nearest", "entity_nearest": 2, "critic_neighbors": 1, "layer_norm": True}, "paper-3"
     ),
 }
 EPISODE_SCENARIO = {"entity": "paper-5", "nearest": "paper-5", "maddpg-nearest": "paper-5"}  # a size never trained on

@@ -250,6 +250,13 @@ def validate(config: TrainConfig) -> EnvParams:
         f"--fail-max-rovers {config.fail_max_rovers} limits --fail-rate to small swarms; give --fail-rate p > 0",
     )
     mixed = config.mission is None and range_sizes(config.scenario) is not None
+    if mixed and config.fail_max_rovers:
+        sizes = range_sizes(config.scenario)
+        require(
+            sizes[0] <= config.fail_max_rovers < sizes[-1],
+            f"--fail-max-rovers {config.fail_max_rovers} must be in [{sizes[0]}, {sizes[-1] - 1}] for --scenario "
+            f"{config.scenario}: below it no swarm fails, from {sizes[-1]} on every one may (0 says that)",
+        )
     for option, on in (
         ("size-curriculum", config.size_curriculum != 0),
         ("balance-sizes", config.ppo.balance_sizes),

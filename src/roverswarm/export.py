@@ -123,13 +123,13 @@ def policy_model(config: TrainConfig, params: EnvParams, actor, obs_norm, doc: s
         return graphs.entity_actor(actor["net"]["params"], learner.entity_heads, doc)
     if not _off_policy(config):
         if learner.network == "nearest":
-            return graphs.nearest_actor(actor["params"]["MLP_0"], k, config.ppo.activation, "clip", None, doc)
+            return graphs.nearest_actor(actor["params"]["MLP_0"], k, config.ppo.activation, "clip", doc)
         return graphs.flat_actor(actor["params"]["MLP_0"], n, o, False, config.ppo.activation, "clip", None, doc)
     per_rover = not learner.share_parameters
     mlp = actor["params"] if per_rover else jax.tree.map(lambda x: x[0], actor["params"])
     norm = None if obs_norm is None else (np.asarray(obs_norm.mean), np.asarray(std(obs_norm)))
-    if learner.network == "nearest":  # shared (--share-parameters), without rover ids
-        return graphs.nearest_actor(mlp, k, "relu", "tanh", norm, doc)
+    if learner.network == "nearest":  # shared (--share-parameters), without rover ids or normaliser
+        return graphs.nearest_actor(mlp, k, "relu", "tanh", doc)
     return graphs.flat_actor(mlp, n, o, per_rover, "relu", "tanh", norm, doc)
 
 

@@ -184,14 +184,6 @@ def _stack_rovers(p: Any) -> Any:
     return p[:, None] if p.ndim == 2 else p
 
 
-def _standardise(g: Graph, x: str, obs_norm: tuple[np.ndarray, np.ndarray] | None) -> str:
-    """``x`` standardised by the observation normaliser's (mean, std) and clipped, if there is one."""
-    if obs_norm is None:
-        return x
-    mean, std = obs_norm
-    return g.op("Clip", g.op("Div", g.op("Sub", x, g.const(mean)), g.const(std)), g.const(-OBS_CLIP), g.const(OBS_CLIP))
-
-
 def flat_actor(
     mlp_params: dict,
     num_rovers: int,
@@ -207,7 +199,11 @@ def flat_actor(
     ``per_rover``, else one shared MLP that reads the one-hot rover index after the
     observation; ``obs_norm``: the (mean [O], std [O]) that standardise observations first."""
     g = Graph()
-    x = _standardise(g, "obs", obs_norm)
+    x = "obs"
+    if obs_norm is not None:
+        mean, std = obs_norm
+        standard = g.op("Div", g.op("Sub", x, g.const(mean)), g.const(std))
+        x = g.op("Clip", standard, g.const(-OBS_CLIP), g.const(OBS_CLIP))
     if per_rover:
         x = g.op("Transpose", x, perm=[1, 0, 2])  # [N, B, O]: one product per rover
         pre = g.op("Transpose", mlp(g, x, _stack_rovers(mlp_params), activation), perm=[1, 0, 2])
@@ -233,21 +229,13 @@ def entity_actor(params: dict, heads: int, doc: str) -> onnx.ModelProto:
     return g.model(_entity_inputs("tokens"), _deterministic(g, pre, "clip"), ["batch", "rovers", ACTION_SIZE], doc)
 
 
-def nearest_actor(
-    mlp_params: dict,
-    k: int,
-    activation: str,
-    squash: str,
-    obs_norm: tuple[np.ndarray, np.ndarray] | None,
-    doc: str,
-) -> onnx.ModelProto:
+def nearest_actor(mlp_params: dict, k: int, activation: str, squash: str, doc: str) -> onnx.ModelProto:
     """The nearest actor: ``own``, ``tokens`` [B, N, 3k, 11], ``mask`` -> ``actions``; its MLP
-    reads [own, tokens (zero where masked) flattened, mask], standardised first by ``obs_norm``
-    if given; ``squash``: ``clip`` (the on-policy Gaussian's mean) or ``tanh`` (the off-policy
-    shared actor)."""
+    reads [own, tokens (zero where masked) flattened, mask]; ``squash``: ``clip`` (the
+    on-policy Gaussian's mean) or ``tanh`` (the off-policy shared actor)."""
     g = Graph()
     tokens = g.op("Where", g.op("Unsqueeze", "mask", g.const([-1], np.int64)), "tokens", g.const(0.0))
     flat = g.op("Reshape", tokens, g.const([0, 0, 3 * k * TOKEN_FEATURES], np.int64))
     x = g.op("Concat", "own", flat, g.op("Cast", "mask", to=TensorProto.FLOAT), axis=-1)
-    pre = mlp(g, _standardise(g, x, obs_norm), mlp_params, activation)
+    pre = mlp(g, x, mlp_params, activation)
     return g.model(_entity_inputs(3 * k), _deterministic(g, pre, squash), ["batch", "rovers", ACTION_SIZE], doc)

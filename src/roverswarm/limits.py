@@ -212,10 +212,13 @@ def _options(config: TrainConfig, *names: str) -> str:
 def training_parts(config: TrainConfig, params: EnvParams) -> list[Part]:
     """The memory a training run of ``config`` needs, part by part (bytes of float32 arrays;
     activations counted forward and backward)."""
+    from roverswarm.env.entities import nearest_width
     from roverswarm.env.mars import ACTION_SIZE, observation_size
     from roverswarm.learners import learner_family
 
-    seeds, n, obs = config.seeds, params.num_rovers, observation_size(params)
+    nearest = config.learner.network == "nearest"
+    obs = nearest_width(config.learner.entity_nearest) if nearest else observation_size(params)
+    seeds, n = config.seeds, params.num_rovers
     steps, width = params.max_steps, sum(config.learner.hidden)
     # networks: the state, its gradients and the updated copy
     parts = [Part("networks", 3 * network_bytes(config, params), _options(config, "hidden", "ensemble", "seeds"))]
@@ -232,7 +235,8 @@ def training_parts(config: TrainConfig, params: EnvParams) -> list[Part]:
         k = config.learner.ensemble
         rollout = seeds * steps * config.num_envs * n * (obs + k * width + ACTION_SIZE) * 4
         parts.append(Part("rollouts", rollout, _options(config, "num_envs", "ensemble", "seeds")))
-        critic_in = n * (obs + ACTION_SIZE)
+        seen = 1 + config.learner.critic_neighbors if config.learner.critic_neighbors else n  # rovers a critic sees
+        critic_in = seen * (obs + ACTION_SIZE)
         batch = seeds * n * k * config.buffer.batch_size * (critic_in + 4 * width) * 4 * 3
         parts.append(Part("minibatches", batch, _options(config, "batch_size", "ensemble", "hidden", "seeds")))
     return parts

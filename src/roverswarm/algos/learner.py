@@ -62,9 +62,10 @@ class AlgoConfig:
     """--infer-policies: the approximations fit batches drawn from the newest this many
     transitions of the replay, so they follow the others' current policies."""
     share_parameters: bool = False
-    """One actor and one critic for all rovers, with the rover's one-hot index as an input and
-    the critic's view ordered own-first; every update learns from all rovers' batches.
-    Not with --ensemble > 1 or --infer-policies."""
+    """One actor and one critic for all rovers, with the rover's one-hot index as an input (not
+    over --network nearest, which serves any swarm size) and the critic's view ordered
+    own-first; every update learns from all rovers' batches. Not with --ensemble > 1 or
+    --infer-policies."""
     critic_neighbors: int = 0
     """MADDPG: each critic sees its own rover and only the nearest this many other rovers
     (their observations and actions, nearest first by the positions in the observations it is

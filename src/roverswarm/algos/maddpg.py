@@ -5,7 +5,7 @@ Shape legend
     O  observation size, A  action size (2),
     D  critic input size: N * (O + A) for MADDPG (all observations and actions),
        (1 + C) * (O + A) with ``critic_neighbors`` C, O + A for DDPG (the agent's own);
-       + N with shared parameters (the one-hot index).
+       + N with shared parameters over the flat view (the one-hot index).
 
 Every agent i has an actor mu_i(o_i) and a critic Q_i. One update of agent i, on a batch
 drawn for it (``batch`` carries a leading agent axis: agent i's own sample):
@@ -50,7 +50,8 @@ ever drawn) leaves its sub-policy's actor alone.
 Options for swarms (homogeneous rovers), each off by default and composable:
 
 * ``share_parameters``: one actor mu(o_i, e_i) and one critic Q(x_i, a_i, e_i) for every
-  rover, e_i the rover's one-hot index. The critic's view is ordered own-first: rover i's
+  rover, e_i the rover's one-hot index (none over the nearest view, ``network="nearest"``:
+  mu(o_i) and Q(x_i, a_i) then serve any number of rovers). The critic's view is ordered own-first: rover i's
   observation and action, then the others' in index order (x_i = o_i, o_{-i}; for DDPG its
   own only; with ``critic_neighbors``, nearest first), so the same weights mean the same
   thing for every rover. Each update takes every rover's batch: the losses below are

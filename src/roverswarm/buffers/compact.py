@@ -135,6 +135,8 @@ def add(buffer: Buffer, state: BufferState, batch: Collected) -> BufferState:
     policy = None if batch.policy is None else jnp.broadcast_to(batch.policy, (steps, *batch.policy.shape))
     records = Step(batch.rovers, batch.actions, batch.rewards, batch.terminated, where, policy, batch.observed)
     state = buffer.add(state, jax.tree.map(lambda x: x.reshape(steps * envs, *x.shape[2:]), records))
+    if (batch.final_observed is None) != (table.final_observed is None):
+        raise ValueError("compact.add: the episodes must carry the observed POIs exactly when the replay keeps them")
     final_observed = None
     if batch.final_observed is not None:
         final_observed = table.final_observed.at[slots].set(batch.final_observed)
