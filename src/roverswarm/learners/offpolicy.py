@@ -40,7 +40,7 @@ from roverswarm.buffers.base import (
     recent_indices,
 )
 from roverswarm.env.entities import EntityView, flat_tokens, nearest_width, observe_nearest
-from roverswarm.env.mars import ACTION_SIZE, EnvParams, count_text, observation_size, reset, step_env
+from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, reset, step_env
 from roverswarm.env.scenarios import range_sizes
 from roverswarm.errors import require, require_finite, require_positive
 from roverswarm.learners.base import Family, Runner, seed_keys, start_runner
@@ -110,13 +110,6 @@ def check(config, params: EnvParams) -> None:
         not nearest or learner.algo == "ddpg" or learner.critic_neighbors >= 1,
         "--network nearest with --algo maddpg needs --critic-neighbors C >= 1: the critic sees the rover and its C "
         "nearest other rovers, nearest first, the same under any order of the rovers",
-    )
-    fewest = min(params.num_rovers - 1, params.num_pois, params.num_traps)
-    require(
-        not nearest or learner.entity_nearest <= fewest,
-        f"--entity-nearest {learner.entity_nearest} with --algo {learner.algo}: training on one swarm size, every "
-        f"token slot must be filled, or the slots a larger swarm fills keep untrained weights; at most {fewest} "
-        f"here ({count_text(params)})",
     )
     require(
         not nearest or not learner.normalize_obs,
