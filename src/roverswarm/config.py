@@ -249,9 +249,9 @@ def validate(config: TrainConfig) -> EnvParams:
         config.fail_max_rovers == 0 or config.fail_rate > 0,
         f"--fail-max-rovers {config.fail_max_rovers} limits --fail-rate to small swarms; give --fail-rate p > 0",
     )
-    mixed = config.mission is None and range_sizes(config.scenario) is not None
+    sizes = None if config.mission is not None else range_sizes(config.scenario)
+    mixed = sizes is not None
     if mixed and config.fail_max_rovers:
-        sizes = range_sizes(config.scenario)
         require(
             sizes[0] <= config.fail_max_rovers < sizes[-1],
             f"--fail-max-rovers {config.fail_max_rovers} must be in [{sizes[0]}, {sizes[-1] - 1}] for --scenario "

@@ -236,10 +236,11 @@ def replay_bytes(config, params: EnvParams) -> tuple[int, int, int]:
     """(bytes, transitions, bytes per transition) of every seed's replay of run ``config``: the
     stored transitions and episodes, and the sampling state of the ranked replay and the
     ensembles' partitions, from their shapes (nothing is allocated)."""
-    buffer = run_buffer(config, params)
-    shapes = jax.eval_shape(lambda: _replay(configure(config, params), params))
-    per_transition = math.ceil(compact.nbytes(shapes) / buffer.capacity)
-    return config.seeds * buffer.capacity * per_transition, buffer.capacity, per_transition
+    configured = configure(config, params)
+    capacity = _buffer(configured, params).capacity
+    shapes = jax.eval_shape(lambda: _replay(configured, params))
+    per_transition = math.ceil(compact.nbytes(shapes) / capacity)
+    return config.seeds * capacity * per_transition, capacity, per_transition
 
 
 # ----------------------------------------------------------------------------- jitted core
