@@ -17,7 +17,8 @@ from roverswarm.env.mars import NEVER, EnvParams, reset, step_env
 from roverswarm.env.missions import MAX_BYTES, MAX_ENTRIES, load_mission, parse_mission
 from roverswarm.errors import UserError
 from roverswarm.mission import load_policy, parse_failures, run_mission, stress_mission
-from roverswarm.policies import ORACLE, RANDOM, OraclePlan, Policy, oracle_goals
+from roverswarm.oracle import OraclePlan, oracle_goals
+from roverswarm.policies import ORACLE, RANDOM, Policy
 from roverswarm.rollout import EpisodeStats, MissionStats, Rollout, rollout
 
 EXAMPLES = Path(__file__).parent.parent / "examples"

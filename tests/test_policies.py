@@ -13,7 +13,8 @@ from roverswarm.algos.learner import AlgoConfig, init_learner
 from roverswarm.config import TrainConfig
 from roverswarm.env import get_scenario
 from roverswarm.env.mars import observation_size
-from roverswarm.policies import ORACLE, RANDOM, assign_pois, trained_policy
+from roverswarm.oracle import assign_pois
+from roverswarm.policies import ORACLE, RANDOM, trained_policy
 from roverswarm.rollout import rollout
 
 

@@ -151,7 +151,7 @@ def metric_rows(
             row[f"agent_{i}_reward"] = float(r)
         for k in EPISODE_METRICS[1:]:
             row[k] = float(metrics[k][s])
-        for k in learner_family(config.learner.algo).metric_names(config.learner):
+        for k in learner_family(config.learner.algo).metric_names(config):
             row[k] = float(reduce_metric(k, metrics[k][s], None))
         row["wall_seconds"] = seconds
         rows.append(row)

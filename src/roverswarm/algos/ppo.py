@@ -37,6 +37,9 @@ rho = pi(u | o) / pi_old(u | o) and advantages normalised to zero mean and unit 
                         (plain 0.5 * mean (V - R)^2 without value clipping)
     total             = L_pi + c_V * L_V - c_H * mean H[pi]
 
+With --teacher w (an option, learning from more than the reward) the total gains
+w * mean |mu(o) - u*|^2, u* the oracle's action in the rollout's state.
+
 Actor and value network each have their own Adam (gradient norm clipped per network).
 With ``value_norm`` (MAPPO's ValueNorm) the value network predicts returns standardised by a
 running mean and variance of the value targets; V above is then the de-standardised output
@@ -102,6 +105,11 @@ class PPOConfig:
     """MAPPO with ``--network nearest``: the value sees the whole swarm besides the rover's own
     view (the mean of every rover's view and the swarm's size), a centralised value for any
     size; off, the value sees what the actor sees."""
+    teacher: float = 0.0
+    """Weight of an imitation loss beside PPO's: the squared distance of the policy's mean action
+    from the oracle's (:mod:`roverswarm.oracle`, its assignment drawn greedily per episode) in
+    the states of the rollout, which the policy itself drives (DAgger's way: the student
+    drives, the oracle labels). 0 learns from the reward alone."""
 
 
 @dataclass(frozen=True)
@@ -239,6 +247,7 @@ class Batch:
     targets: jax.Array  # [B] value targets R (standardised with --value-norm)
     values: jax.Array  # [B] the rollout's values V_old (standardised with --value-norm)
     mask: jax.Array  # [B] sample weights: 0 after a termination or for no rover, else 1 (--balance-sizes: B / N)
+    teacher: jax.Array | None = None  # [B, A] the oracle's actions (--teacher), else None
 
 
 def _masked_mean(x: jax.Array, mask: jax.Array) -> jax.Array:
@@ -287,7 +296,9 @@ def ppo_loss(
 
 def update_minibatch(config: OnPolicyConfig, state: PPOState, batch: Batch) -> tuple[PPOState, dict[str, jax.Array]]:
     """One gradient step of the actor and of the value network on ``batch``; returns the
-    state (networks and optimiser states changed) and :func:`ppo_loss`'s parts."""
+    state (networks and optimiser states changed) and :func:`ppo_loss`'s parts (with
+    --teacher, also ``imitation_loss``: the mean squared distance of the mean action from the
+    oracle's, the samples weighted as in the PPO loss)."""
     nets = policy_networks(config.learner, config.ppo)
     actor_opt, critic_opt = optimizers(config)
 
@@ -296,7 +307,11 @@ def update_minibatch(config: OnPolicyConfig, state: PPOState, batch: Batch) -> t
         log_probs = gaussian_log_prob(batch.actions, mean, log_std)
         entropy = jnp.broadcast_to(gaussian_entropy(log_std), log_probs.shape)
         values = nets.value(critic, batch.critic_inputs)
-        return ppo_loss(config.ppo, log_probs, entropy, values, batch)
+        total, parts = ppo_loss(config.ppo, log_probs, entropy, values, batch)
+        if batch.teacher is None:
+            return total, parts
+        imitation = _masked_mean(jnp.sum(jnp.square(mean - batch.teacher), axis=-1), batch.mask)
+        return total + config.ppo.teacher * imitation, {**parts, "imitation_loss": imitation}
 
     (_, parts), (actor_grads, critic_grads) = jax.value_and_grad(loss, argnums=(0, 1), has_aux=True)(
         state.actor, state.critic

@@ -91,7 +91,7 @@ class Family:
     """Learner state -> the ``weights`` of :attr:`act`: (actor parameters, observation
     normaliser or None)."""
     metric_names: Callable[[Any], tuple[str, ...]]
-    """The learner's options (``config.learner``) -> its per-update metrics in ``metrics.csv``."""
+    """config -> the learner's per-update metrics in ``metrics.csv``."""
     replay: bool
     """Whether the family learns from a replay (its runner carries one)."""
     replay_buffer: Callable[[Program, EnvParams], Any]

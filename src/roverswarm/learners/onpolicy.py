@@ -41,6 +41,7 @@ from roverswarm.env.scenarios import draw_sizes, range_sizes, sized
 from roverswarm.errors import require, require_finite, require_positive
 from roverswarm.learners.base import Family, Runner, no_replay, seed_keys, start_runner
 from roverswarm.metrics import episode_totals, shaped_rewards, step_stats
+from roverswarm.oracle import greedy_plan, oracle_actions
 
 PPO_METRICS = ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction")
 """Per-update metrics of --algo mappo/ippo (means over the chunk's updates)."""
@@ -77,6 +78,7 @@ class Trajectory:
     truncated: jax.Array  # [T, E] bool
     mask: jax.Array  # [T, E] float, 1 until (and including) the terminating step
     rovers: jax.Array  # [T, E, N] float, 1 for a rover that exists (all of them unless sizes are mixed)
+    teacher: jax.Array | None = None  # [T, E, N, A] the oracle's actions (--teacher), else None
 
 
 def check(config, params: EnvParams) -> None:
@@ -93,7 +95,7 @@ def check(config, params: EnvParams) -> None:
     if ppo.value_clip is not None:
         require_finite(ppo.value_clip, 0, "value-clip", strict=True)
     require(0 <= ppo.gae_lambda <= 1, f"--gae-lambda must be in [0, 1], got {ppo.gae_lambda}")
-    for name in ("ent_coef", "vf_coef"):
+    for name in ("ent_coef", "vf_coef", "teacher"):
         require_finite(getattr(ppo, name), 0, name.replace("_", "-"))
     require(ppo.anneal_episodes >= 0, f"--anneal-episodes must be >= 0, got {ppo.anneal_episodes}")
     require(ppo.activation in ("tanh", "relu"), f"--activation must be 'tanh' or 'relu', got '{ppo.activation}'")
@@ -189,6 +191,7 @@ def collect(
     ``episodes`` episodes of training (the size curriculum reads it).
 
     After a termination (mission mode) an episode stands still and its steps are masked out.
+    With --teacher, the trajectory also holds the oracle's action in every state.
     Returns the trajectory [T, E, ...] and per-episode stats [E], as the MADDPG trainer's:
     ``episode_reward``, ``agent_rewards`` [E, N], ``collisions``, ``trap_contacts`` and
     ``coverage_distance`` (at the last step).
@@ -200,6 +203,7 @@ def collect(
     env_state = _reset_all(config, params, k_reset, episodes)
     obs = observe_all(env_state, params)
     exists = jnp.ones((config.num_envs, params.num_rovers)) if env_state.rover_mask is None else env_state.rover_mask
+    plan = jax.vmap(greedy_plan, in_axes=(0, None))(env_state, params) if config.ppo.teacher else None
 
     def body(carry, step_key):
         obs, env_state, done = carry
@@ -220,6 +224,7 @@ def collect(
             truncated=truncated & live,
             mask=live.astype(jnp.float32),
             rovers=exists.astype(jnp.float32),
+            teacher=None if plan is None else jax.vmap(oracle_actions, in_axes=(0, 0, None))(env_state, plan, params),
         )
         stats = step_stats(rewards, info, live)
         carry = (_where_env(done, obs, next_obs), _where_env(done, env_state, next_state), done | terminated)
@@ -273,6 +278,7 @@ def make_batch(config: OnPolicyConfig, state: PPOState, traj: Trajectory) -> tup
         targets=flat(targets),
         values=flat(values),
         mask=flat(mask * size_weights(traj.rovers) if config.ppo.balance_sizes else mask),
+        teacher=flat(traj.teacher),
     )
     return batch, returns
 
@@ -350,7 +356,7 @@ FAMILY = Family(
     act=_act,
     view=_view,
     weights=lambda state: (state.actor, None),  # no observation normaliser
-    metric_names=lambda learner: PPO_METRICS,
+    metric_names=lambda config: PPO_METRICS + (("imitation_loss",) if config.ppo.teacher else ()),
     replay=False,
     replay_buffer=lambda program, params: None,
     replay_bytes=no_replay,
