@@ -181,6 +181,20 @@ def test_a_size_agnostic_run_evaluates_on_sizes_it_never_saw(anysize_run, capsys
     assert "paper-6" in capsys.readouterr().out
 
 
+def test_other_seeds_partners_fill_a_swarm_of_any_size(anysize_run):
+    """--partners other-seeds at a size the run never trained on: rover i of seed s's swarm is
+    seed (s + i) mod S's, for every one of the swarm's rovers (it once took the run's own size)."""
+    rows = evaluate_run(anysize_run, episodes=10, scenario="paper-3,5", partners="other-seeds")
+    mixed = [(r["scenario"], r["policy"]) for r in rows if r["policy"] not in ("random", "oracle")]
+    assert mixed == [
+        ("paper-3", "mappo agents of seeds 0/1/0"),
+        ("paper-3", "mappo agents of seeds 1/0/1"),
+        ("paper-5", "mappo agents of seeds 0/1/0/1/0"),
+        ("paper-5", "mappo agents of seeds 1/0/1/0/1"),
+    ]
+    assert all(np.isfinite(r["normalized_score"]) for r in rows)
+
+
 def test_a_flat_policy_refuses_another_size(tiny_ppo_config, tmp_path, capsys):
     from roverswarm.cli import main
 

@@ -67,10 +67,10 @@ def evaluate_run(
     run = Run(out)
     check_memory(evaluation_parts(run.config, run.params, episodes), "this evaluation")
     key = jax.random.PRNGKey(seed)
-    policies = run.policies(sub_policies, seed, partners)
     named = scenario is not None or (run.config.mission is None and range_sizes(run.config.scenario) is not None)
     rows = []
     for name, params in _targets(run, scenario):
+        policies = run.policies(sub_policies, seed, partners, rovers=params.num_rovers)
         results = {p.name: rollout(p, key, params, episodes).stats.summary() for p in (RANDOM, ORACLE, *policies)}
         low, high = results["random"]["episode_reward"], results["oracle"]["episode_reward"]
         for policy, summary in results.items():

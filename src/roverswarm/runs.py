@@ -286,12 +286,15 @@ class Run:
         actor, norm = jax.tree.map(lambda x: x[index], learner_family(self.config.learner.algo).weights(self.learner))
         return trained_policy(self.config, actor, name, sub_policy, seed, obs_norm=norm)
 
-    def policies(self, sub_policies: SubPolicies = "random", seed: int = 0, partners: Partners = "own") -> list[Policy]:
+    def policies(
+        self, sub_policies: SubPolicies = "random", seed: int = 0, partners: Partners = "own", rovers: int | None = None
+    ) -> list[Policy]:
         """Every seed's trained policy; with ensembles, a random sub-policy per agent and episode
         as in training (``random``), or every sub-policy k of all agents in turn (``each``).
         With ``partners="other-seeds"`` agent i of seed s's swarm is seed ``(s + i) mod S``'s
         agent i (:func:`partner_seeds`, :func:`~roverswarm.policies.mixed_policy`): a test of how
-        well a policy copes with partners it was not trained with."""
+        well a policy copes with partners it was not trained with; ``rovers``: the swarm's size
+        (an any-size run's, evaluated at another size; default the run's own)."""
         config = self.config
         require(sub_policies in ("random", "each"), f"--sub-policies must be 'random' or 'each', got '{sub_policies}'")
         require(partners in ("own", "other-seeds"), f"--partners must be 'own' or 'other-seeds', got '{partners}'")
@@ -303,7 +306,9 @@ class Run:
         sub = [None] if ensemble == 1 or sub_policies == "random" else list(range(ensemble))
         policies = []
         for s in range(config.seeds):
-            sources = partner_seeds(s, self.params.num_rovers, config.seeds) if partners == "other-seeds" else None
+            sources = (
+                partner_seeds(s, rovers or self.params.num_rovers, config.seeds) if partners == "other-seeds" else None
+            )
             name = f"{algo} seed {s}" if sources is None else f"{algo} agents of seeds {'/'.join(map(str, sources))}"
             for k in sub:
                 full = name + ("" if ensemble == 1 else ", random sub-policies" if k is None else f", sub-policy {k}")
