@@ -56,6 +56,8 @@ class OraclePlan:
 
 
 def oracle_plan(states: EnvState, params: EnvParams) -> OraclePlan:
+    """The oracle's plan of a batch of freshly reset states [E, ...], on the host: each rover's
+    POI by :func:`assign_pois` (a padded layout's real rovers and POIs only), its start as home."""
     rover = np.asarray(states.rover_pos)
     poi = np.asarray(states.poi_pos)
     masks = masks_of(states)
