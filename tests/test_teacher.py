@@ -73,23 +73,28 @@ def test_the_trajectory_holds_the_oracles_actions_and_the_loss_their_distance(ti
     params = validate(tiny_teacher)
     config = configure(tiny_teacher, params)
     state = ppo.init_ppo(jax.random.PRNGKey(0), config, params.num_rovers, 0)
+    nets = policy_networks(config.learner, config.ppo)
     key = jax.random.PRNGKey(5)
-    traj, _ = collect(config, params, state.actor, key)
+
+    @jax.jit  # one program (run op by op, this test took 30 s)
+    def one_update(key):
+        traj, _ = collect(config, params, state.actor, key)
+        batch, _ = make_batch(config, state, traj)
+        _, parts = ppo.update_minibatch(config, state, batch)
+        return traj.teacher[0], batch, nets.policy(state.actor, batch.actor_inputs)[0], parts
+
+    first, batch, mean, parts = one_update(key)
     starts = _reset_all(config, training_params(config, params), jax.random.split(key)[0], jnp.asarray(0))
     plans = jax.vmap(greedy_plan, in_axes=(0, None))(starts, params)
-    labels = jax.vmap(oracle_actions, in_axes=(0, 0, None))(starts, plans, params)
-    np.testing.assert_allclose(traj.teacher[0], labels, atol=1e-6)
+    labels = jax.jit(jax.vmap(oracle_actions, in_axes=(0, 0, None)), static_argnums=2)(starts, plans, params)
+    np.testing.assert_allclose(first, labels, atol=1e-6)
     assert np.abs(np.asarray(labels)).max() <= 1.0
 
-    batch, _ = make_batch(config, state, traj)
-    _, parts = ppo.update_minibatch(config, state, batch)
-    nets = policy_networks(config.learner, config.ppo)
-    mean = np.asarray(nets.policy(state.actor, batch.actor_inputs)[0])
     mask = np.asarray(batch.mask)
-    expected = (np.square(mean - np.asarray(batch.teacher)).sum(-1) * mask).sum() / mask.sum()
+    expected = (np.square(np.asarray(mean) - np.asarray(batch.teacher)).sum(-1) * mask).sum() / mask.sum()
     np.testing.assert_allclose(parts["imitation_loss"], expected, rtol=1e-5)
     plain = configure(with_options(tiny_teacher, {"teacher": 0.0}), params)
-    assert collect(plain, params, state.actor, key)[0].teacher is None
+    assert jax.eval_shape(lambda k: collect(plain, params, state.actor, k)[0], key).teacher is None
 
 
 def test_a_policy_taught_by_the_oracle_learns_to_act_like_it(tiny_teacher, tmp_path):
