@@ -24,7 +24,7 @@ import numpy as np
 from flax import struct
 from scipy.optimize import linear_sum_assignment
 
-from roverswarm.env.mars import EnvParams, EnvState, masks_of, other_rovers, trap_radii
+from roverswarm.env.mars import EnvParams, EnvState, masks_of, other_rovers, pairwise_dist, trap_radii
 
 # Clearance kept from a trap's or another rover's edge, and how many steps the controller takes to close the
 # remaining distance to its goal (1 = deadbeat, larger = gentler).
@@ -89,7 +89,7 @@ def greedy_plan(state: EnvState, params: EnvParams) -> OraclePlan:
     """The oracle's plan of one freshly reset environment, on device: rovers matched to POIs by
     :func:`greedy_match` on their distances (the Hungarian method of :func:`oracle_plan` is
     host-side). A padded layout's empty slots take no part."""
-    cost = jnp.linalg.norm(state.rover_pos[:, None, :] - state.poi_pos[None, :, :], axis=-1)
+    cost = pairwise_dist(state.rover_pos, state.poi_pos)
     masks = masks_of(state)
     if masks is not None:
         cost = jnp.where(masks.rovers[:, None] & masks.pois[None, :], cost, jnp.inf)
@@ -117,7 +117,7 @@ def oracle_goals(state: EnvState, plan: OraclePlan, params: EnvParams) -> jax.Ar
     if masks is not None:  # the empty slots of a padded layout neither work nor need a visit
         working, open_poi = working & masks.rovers, open_poi & masks.pois
     free = working & (~has_poi | state.observed[index])  # [N]
-    dist = jnp.linalg.norm(state.rover_pos[:, None, :] - state.poi_pos[None, :, :], axis=-1)  # [N, P]
+    dist = pairwise_dist(state.rover_pos, state.poi_pos)  # [N, P]
     target = greedy_match(jnp.where(free[:, None] & open_poi[None, :], dist, jnp.inf))
     return jnp.where((target >= 0)[:, None], state.poi_pos[jnp.maximum(target, 0)], assigned)
 
