@@ -109,11 +109,32 @@ def test_a_policy_taught_by_the_oracle_learns_to_act_like_it(tiny_teacher, tmp_p
     assert len(scores) == 2 and min(scores.values()) > 0.4, scores
 
 
+@pytest.mark.parametrize("anneal", [0, 10**6])
+def test_the_teacher_weight_decays_linearly_over_teacher_episodes(tiny_teacher, anneal):
+    """--teacher-episodes E: after k of the actor's gradient steps the weight is
+    W * max(0, 1 - k / S), S the steps of E episodes (E / --num-envs iterations of epochs x
+    minibatches steps), counted here by hand; Adam's count is found with annealed rates too
+    (their schedule keeps a count of its own)."""
+    taught = with_options(tiny_teacher, {"teacher_episodes": 3 * tiny_teacher.num_envs, "anneal_episodes": anneal})
+    config = configure(taught, validate(taught))
+    steps = 3 * taught.ppo.epochs * taught.ppo.minibatches
+    actor = {"w": jnp.zeros(2)}
+    opt, _ = ppo.optimizers(config)
+    state = opt.init(actor)
+    for k in range(steps + 6):
+        expected = taught.ppo.teacher * max(0.0, 1.0 - k / steps)
+        np.testing.assert_allclose(ppo.teacher_weight(config, state), expected, rtol=1e-6, atol=1e-7)
+        _, state = opt.update({"w": jnp.ones(2)}, state, actor)
+    assert ppo.teacher_weight(configure(tiny_teacher, validate(tiny_teacher)), state) == tiny_teacher.ppo.teacher
+
+
 @pytest.mark.parametrize(
     "options, pattern",
     [
         ({"teacher": -1.0}, "--teacher must be a finite number >= 0"),
         ({"teacher": 1.0, "algo": "maddpg"}, "--teacher 1.0 does not apply: it is a PPO option"),
+        ({"teacher": 1.0, "teacher_episodes": -5}, "--teacher-episodes must be >= 0, got -5"),
+        ({"teacher": 0.0, "teacher_episodes": 100}, "give --teacher > 0 with it"),
     ],
 )
 def test_bad_teacher_options_name_the_field(options, pattern):

@@ -38,7 +38,8 @@ rho = pi(u | o) / pi_old(u | o) and advantages normalised to zero mean and unit 
     total             = L_pi + c_V * L_V - c_H * mean H[pi]
 
 With --teacher w (an option, learning from more than the reward) the total gains
-w * mean |mu(o) - u*|^2, u* the oracle's action in the rollout's state.
+w * mean |mu(o) - u*|^2, u* the oracle's action in the rollout's state; with
+--teacher-episodes E, w decays linearly to 0 over the first E episodes (kickstarting).
 
 Actor and value network each have their own Adam (gradient norm clipped per network).
 With ``value_norm`` (MAPPO's ValueNorm) the value network predicts returns standardised by a
@@ -110,6 +111,9 @@ class PPOConfig:
     from the oracle's (:mod:`roverswarm.oracle`, its assignment drawn greedily per episode) in
     the states of the rollout, which the policy itself drives (DAgger's way: the student
     drives, the oracle labels). 0 learns from the reward alone."""
+    teacher_episodes: int = 0
+    """Episodes per seed over which the --teacher weight decays linearly to 0 (kickstarting:
+    the oracle teaches first, the reward alone finishes); 0 keeps the weight constant."""
 
 
 @dataclass(frozen=True)
@@ -170,6 +174,25 @@ class PPOState:
     returns: ObsNorm  # running mean and variance of the value targets [1] (--value-norm)
 
 
+def _updates(config: OnPolicyConfig, episodes: int) -> int:
+    """Gradient steps per seed in ``episodes`` episodes (at least one iteration's)."""
+    return max(episodes // config.num_envs, 1) * updates_per_iteration(config.ppo)
+
+
+def teacher_weight(config: OnPolicyConfig, actor_opt: Any) -> jax.Array | float:
+    """The --teacher weight at the actor's current gradient step (Adam's count in
+    ``actor_opt``): constant, or with --teacher-episodes linear from --teacher to 0."""
+    ppo = config.ppo
+    if ppo.teacher_episodes == 0:
+        return ppo.teacher
+    (adam,) = [s for s in jax.tree.leaves(actor_opt, is_leaf=_is_adam) if _is_adam(s)]
+    return optax.linear_schedule(ppo.teacher, 0.0, _updates(config, ppo.teacher_episodes))(adam.count)
+
+
+def _is_adam(node: Any) -> bool:
+    return isinstance(node, optax.ScaleByAdamState)
+
+
 def optimizers(config: OnPolicyConfig) -> tuple[optax.GradientTransformation, optax.GradientTransformation]:
     """Adam (eps 1e-5) with global-norm clipping (--grad-clip), for (actor, value network);
     with --anneal-episodes the learning rates decay linearly to 0 over that many episodes."""
@@ -178,8 +201,7 @@ def optimizers(config: OnPolicyConfig) -> tuple[optax.GradientTransformation, op
     def make(lr: float) -> optax.GradientTransformation:
         rate: Any = lr
         if ppo.anneal_episodes > 0:
-            steps = max(ppo.anneal_episodes // config.num_envs, 1) * updates_per_iteration(ppo)
-            rate = optax.linear_schedule(lr, 0.0, steps)
+            rate = optax.linear_schedule(lr, 0.0, _updates(config, ppo.anneal_episodes))
         return optax.chain(optax.clip_by_global_norm(learner.grad_clip), optax.adam(rate, eps=1e-5))
 
     return make(learner.actor_lr), make(learner.critic_lr)
@@ -311,7 +333,8 @@ def update_minibatch(config: OnPolicyConfig, state: PPOState, batch: Batch) -> t
         if batch.teacher is None:
             return total, parts
         imitation = _masked_mean(jnp.sum(jnp.square(mean - batch.teacher), axis=-1), batch.mask)
-        return total + config.ppo.teacher * imitation, {**parts, "imitation_loss": imitation}
+        weight = teacher_weight(config, state.actor_opt)
+        return total + weight * imitation, {**parts, "imitation_loss": imitation}
 
     (_, parts), (actor_grads, critic_grads) = jax.value_and_grad(loss, argnums=(0, 1), has_aux=True)(
         state.actor, state.critic

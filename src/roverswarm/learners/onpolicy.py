@@ -97,7 +97,12 @@ def check(config, params: EnvParams) -> None:
     require(0 <= ppo.gae_lambda <= 1, f"--gae-lambda must be in [0, 1], got {ppo.gae_lambda}")
     for name in ("ent_coef", "vf_coef", "teacher"):
         require_finite(getattr(ppo, name), 0, name.replace("_", "-"))
-    require(ppo.anneal_episodes >= 0, f"--anneal-episodes must be >= 0, got {ppo.anneal_episodes}")
+    for name in ("anneal_episodes", "teacher_episodes"):
+        require(getattr(ppo, name) >= 0, f"--{name.replace('_', '-')} must be >= 0, got {getattr(ppo, name)}")
+    require(
+        not ppo.teacher_episodes or ppo.teacher > 0,
+        f"--teacher-episodes decays the --teacher weight; give --teacher > 0 with it (got --teacher {ppo.teacher})",
+    )
     require(ppo.activation in ("tanh", "relu"), f"--activation must be 'tanh' or 'relu', got '{ppo.activation}'")
     require(
         not ppo.swarm_value or (config.learner.network == "nearest" and config.learner.algo == "mappo"),
