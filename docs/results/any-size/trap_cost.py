@@ -1,0 +1,77 @@
+"""What the paper's reward asks of the traps: the oracle against the same oracle blind to traps.
+
+    python docs/results/any-size/trap_cost.py   # about 3 minutes; writes trap-cost.md
+
+The trap-blind oracle is the oracle (its Hungarian plan, its steering around the other rovers)
+driving as if there were no traps: it steers on a copy of the state with the traps moved far
+off the map, while the environment keeps them (every contact is charged). Per swarm size,
+1000 episodes on the same layouts for random, the oracle and the trap-blind oracle: the blind
+one's normalised score (1 is the oracle), its trap contacts beside the oracle's and the
+`anysize` preset's run ([any-size.csv](any-size.csv), the seeds' mean), and the trap penalty at
+which steering around traps starts to pay: the episode reward is linear in the penalty (each
+contact costs it once), so the two oracles' rewards meet at
+``1 + (R_blind - R_oracle) / (T_blind - T_oracle)`` (the environment's penalty is 1).
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+
+from roverswarm.env import get_scenario
+from roverswarm.jaxcache import enable_compilation_cache
+from roverswarm.oracle import oracle_actions
+from roverswarm.policies import ORACLE, RANDOM, Policy
+from roverswarm.rollout import normalized_score, rollout
+from roverswarm.storage import atomic_write
+
+HERE = Path(__file__).resolve().parent
+
+SIZES = (2, 3, 4, 5, 6, 8, 10)
+
+
+def _blind_act(key, obs, state, plan, weights, params):
+    far = jnp.full_like(state.trap_pos, 1e3)  # the traps, as far as the steering knows
+    return oracle_actions(state.replace(trap_pos=far), plan, params)
+
+
+BLIND = Policy("trap-blind oracle", _blind_act, ORACLE.plan)
+
+
+def _trained_traps() -> dict[int, float]:
+    """The anysize run's mean trap contacts per size (any-size.csv)."""
+    with open(HERE / "any-size.csv") as f:
+        return {int(r["scenario"].split("-")[1]): float(r["trap_contacts"]) for r in csv.DictReader(f)}
+
+
+def main(episodes: int = 1000) -> None:
+    enable_compilation_cache()
+    trained = _trained_traps()
+    lines = [
+        "| N | trap-blind oracle's score | trap contacts: blind / oracle / the anysize run "
+        "| collisions: blind / oracle | trap penalty at which steering pays |",
+        "|---|---|---|---|---|",
+    ]
+    for n in SIZES:
+        params = get_scenario(f"paper-{n}")
+        runs = {
+            p.name: rollout(p, jax.random.PRNGKey(0), params, episodes).stats.summary() for p in (RANDOM, ORACLE, BLIND)
+        }
+        blind, oracle = runs[BLIND.name], runs[ORACLE.name]
+        score = normalized_score(blind["episode_reward"], runs[RANDOM.name]["episode_reward"], oracle["episode_reward"])
+        pays = 1.0 + (blind["episode_reward"] - oracle["episode_reward"]) / (
+            blind["trap_contacts"] - oracle["trap_contacts"]
+        )
+        lines.append(
+            f"| {n} | {score:.3f} | {blind['trap_contacts']:.2f} / {oracle['trap_contacts']:.2f} / {trained[n]:.2f} "
+            f"| {blind['collisions']:.2f} / {oracle['collisions']:.2f} | {pays:.2f} |"
+        )
+        print(lines[-1], flush=True)
+    atomic_write(HERE / "trap-cost.md", lambda f: f.write("\n".join(lines) + "\n"))
+
+
+if __name__ == "__main__":
+    main()
