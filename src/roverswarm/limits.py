@@ -212,12 +212,11 @@ def _options(config: TrainConfig, *names: str) -> str:
 def training_parts(config: TrainConfig, params: EnvParams) -> list[Part]:
     """The memory a training run of ``config`` needs, part by part (bytes of float32 arrays;
     activations counted forward and backward)."""
-    from roverswarm.env.entities import nearest_width
-    from roverswarm.env.mars import ACTION_SIZE, observation_size
+    from roverswarm.algos.learner import observation_width
+    from roverswarm.env.mars import ACTION_SIZE
     from roverswarm.learners import learner_family
 
-    nearest = config.learner.network == "nearest"
-    obs = nearest_width(config.learner.entity_nearest) if nearest else observation_size(params)
+    obs = observation_width(config.learner, params)
     seeds, n = config.seeds, params.num_rovers
     steps, width = params.max_steps, sum(config.learner.hidden)
     # networks: the state, its gradients and the updated copy
@@ -231,7 +230,9 @@ def training_parts(config: TrainConfig, params: EnvParams) -> list[Part]:
         batch = seeds * samples // config.ppo.minibatches * (obs + value_in + 4 * width) * 4 * 3
         parts.append(Part("minibatches", batch, _options(config, "minibatches", "num_envs", "hidden", "seeds")))
     else:
-        parts.append(Part("replay", family.replay_bytes(config, params)[0], _options(config, "buffer_size", "ensemble", "seeds")))
+        parts.append(
+            Part("replay", family.replay_bytes(config, params)[0], _options(config, "buffer_size", "ensemble", "seeds"))
+        )
         k = config.learner.ensemble
         rollout = seeds * steps * config.num_envs * n * (obs + k * width + ACTION_SIZE) * 4
         parts.append(Part("rollouts", rollout, _options(config, "num_envs", "ensemble", "seeds")))

@@ -20,7 +20,8 @@ from roverswarm.algos.inference import gaussian_policies
 from roverswarm.algos.networks import MLP, actor_forward, critic_forward
 from roverswarm.algos.normalize import ObsNorm, init_obs_norm, normalize, update_obs_norm
 from roverswarm.buffers.base import Transition
-from roverswarm.env.mars import ACTION_SIZE, OWN_POSITION, other_rovers
+from roverswarm.env.entities import nearest_width
+from roverswarm.env.mars import ACTION_SIZE, OWN_POSITION, EnvParams, observation_size, other_rovers
 
 Algo = Literal["maddpg", "ddpg", "mappo", "ippo"]
 """The ``--algo`` choices; :data:`roverswarm.learners.FAMILIES` maps each to its learner family."""
@@ -133,6 +134,12 @@ class LearnerState:
     approx_opt: Any = None  # [N, N, ...]
     obs_norm: ObsNorm | None = None  # --normalize-obs
     updates: jax.Array | None = None  # [] int32 updates so far (--actor-delay > 1)
+
+
+def observation_width(config: AlgoConfig, params: EnvParams) -> int:
+    """The width of one rover's observation as ``config``'s networks read it: the --network
+    nearest view's (one width for any swarm size), else the flat view's of ``params``."""
+    return nearest_width(config.entity_nearest) if config.network == "nearest" else observation_size(params)
 
 
 def networks(config: AlgoConfig) -> tuple[MLP, MLP]:

@@ -26,7 +26,7 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
-from roverswarm.algos.learner import AlgoConfig, LearnerState, act, init_learner, observe_batch
+from roverswarm.algos.learner import AlgoConfig, LearnerState, act, init_learner, observation_width, observe_batch
 from roverswarm.algos.maddpg import inference_error, update
 from roverswarm.buffers import compact, make_buffer
 from roverswarm.buffers.base import (
@@ -38,8 +38,8 @@ from roverswarm.buffers.base import (
     newest_fraction,
     recent_indices,
 )
-from roverswarm.env.entities import EntityView, flat_tokens, nearest_width, observe_nearest
-from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, reset, step_env
+from roverswarm.env.entities import EntityView, flat_tokens, observe_nearest
+from roverswarm.env.mars import ACTION_SIZE, EnvParams, reset, step_env
 from roverswarm.learners.base import Family, Runner, seed_keys, start_runner
 from roverswarm.learners.offpolicy_config import RUN_OPTIONS, OffPolicyConfig, check, configure, run_replay
 from roverswarm.metrics import episode_totals, reduce_metric, shaped_rewards, step_stats
@@ -85,8 +85,7 @@ def _replay(config: OffPolicyConfig, params: EnvParams) -> BufferState:
 
 def _sizes(learner: AlgoConfig, params: EnvParams) -> tuple[int, int]:
     """(N, O): the agents and the width of one rover's observation in ``learner``'s view."""
-    width = observation_size(params) if view_of(learner) is None else nearest_width(learner.entity_nearest)
-    return params.num_rovers, width
+    return params.num_rovers, observation_width(learner, params)
 
 
 def init(config: OffPolicyConfig, params: EnvParams, seed: int) -> Runner:
