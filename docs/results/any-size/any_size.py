@@ -101,12 +101,13 @@ def anysize(episodes: int, seeds: int, **options) -> TrainConfig:
 
 def setting(config: TrainConfig) -> str:
     """The rows' setting: ``anysize``, with what the run changes of the rover-loss lesson, the
-    size draw and the teacher when it has them."""
+    size draw and the teacher (and its decay) when it has them."""
     limit = f" up to {config.fail_max_rovers} rovers" if config.fail_max_rovers else ""
     extra = [f"fail {config.fail_rate:g}{limit}"] * (config.fail_rate > 0)
     extra += [f"shaping {config.learner.unobserved_shaping:g}"] * (config.learner.unobserved_shaping > 0)
     extra += [f"sizes N^-{config.size_draw_power:g}"] * (config.size_draw_power > 0)
-    extra += [f"teacher {config.ppo.teacher:g}"] * (config.ppo.teacher > 0)
+    decay = f" to 0 over {config.ppo.teacher_episodes / 1000:g}k" if config.ppo.teacher_episodes else ""
+    extra += [f"teacher {config.ppo.teacher:g}{decay}"] * (config.ppo.teacher > 0)
     return " + ".join(["anysize", *extra])
 
 
@@ -163,6 +164,7 @@ def main() -> None:
     parser.add_argument("--fail-max-rovers", type=int, default=0, help="train --fail-max-rovers")
     parser.add_argument("--size-draw-power", type=float, default=0.0, help="train --size-draw-power")
     parser.add_argument("--teacher", type=float, default=0.0, help="train --teacher (rows of their own)")
+    parser.add_argument("--teacher-episodes", type=int, default=0, help="train --teacher-episodes (kickstarting)")
     args = parser.parse_args()
     enable_compilation_cache()
     if args.specialists is not None:
@@ -174,7 +176,14 @@ def main() -> None:
     if args.run is None:
         parser.error("give --run (the one policy) or --specialists")
     if not (args.evaluate or args.stress_only):
-        options = ("fail_rate", "unobserved_shaping", "fail_max_rovers", "size_draw_power", "teacher")
+        options = (
+            "fail_rate",
+            "unobserved_shaping",
+            "fail_max_rovers",
+            "size_draw_power",
+            "teacher",
+            "teacher_episodes",
+        )
         config = anysize(args.episodes, args.seeds, **{name: getattr(args, name) for name in options})
         train(config, out=args.run, resume=(args.run / CONFIG).exists())
     if not args.stress_only:
