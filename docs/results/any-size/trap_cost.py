@@ -15,13 +15,13 @@ contact costs it once), so the two oracles' rewards meet at
 
 from __future__ import annotations
 
-import csv
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 
 from roverswarm.env import get_scenario
+from roverswarm.experiments.sweep import read_table
 from roverswarm.jaxcache import enable_compilation_cache
 from roverswarm.oracle import oracle_actions
 from roverswarm.policies import ORACLE, RANDOM, Policy
@@ -43,8 +43,7 @@ BLIND = Policy("trap-blind oracle", _blind_act, ORACLE.plan)
 
 def _trained_traps() -> dict[int, float]:
     """The anysize run's mean trap contacts per size (any-size.csv)."""
-    with open(HERE / "any-size.csv") as f:
-        return {int(r["scenario"].split("-")[1]): float(r["trap_contacts"]) for r in csv.DictReader(f)}
+    return {int(r["scenario"].split("-")[1]): r["trap_contacts"] for r in read_table(HERE / "any-size.csv")}
 
 
 def main(episodes: int = 1000) -> None:
