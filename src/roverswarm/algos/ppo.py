@@ -40,8 +40,6 @@ rho = pi(u | o) / pi_old(u | o) and advantages normalised to zero mean and unit 
 With --teacher w (an option, learning from more than the reward) the total gains
 w * mean |mu(o) - u*|^2, u* the oracle's action in the rollout's state; with
 --teacher-episodes E, w decays linearly to 0 over the first E episodes (kickstarting).
-With --self-imitation W (from the reward alone) it gains W times the self-imitation loss of
-a minibatch of remembered samples (:mod:`roverswarm.algos.self_imitation`).
 
 Actor and value network each have their own Adam (gradient norm clipped per network).
 With ``value_norm`` (MAPPO's ValueNorm) the value network predicts returns standardised by a
@@ -59,11 +57,9 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from roverswarm.algos import self_imitation
 from roverswarm.algos.learner import AlgoConfig
-from roverswarm.algos.normalize import ObsNorm, init_obs_norm, std
+from roverswarm.algos.normalize import ObsNorm, init_obs_norm
 from roverswarm.algos.ppo_networks import policy_networks
-from roverswarm.algos.self_imitation import Memory
 
 # ----------------------------------------------------------------------------- configuration
 
@@ -118,12 +114,6 @@ class PPOConfig:
     teacher_episodes: int = 0
     """Episodes per seed over which the --teacher weight decays linearly to 0 (kickstarting:
     the oracle teaches first, the reward alone finishes); 0 keeps the weight constant."""
-    self_imitation: float = 0.0
-    """Weight of self-imitation (:mod:`roverswarm.algos.self_imitation`, Oh et al. 2018): the
-    policy also imitates the remembered samples whose return beat its value estimate the most.
-    Learning from the reward alone; 0 turns it off."""
-    self_imitation_memory: int = 10_000
-    """Samples (one per rover and step) each seed remembers for --self-imitation."""
 
 
 @dataclass(frozen=True)
@@ -182,7 +172,6 @@ class PPOState:
     actor_opt: Any  # Adam state of the actor
     critic_opt: Any  # Adam state of the value network
     returns: ObsNorm  # running mean and variance of the value targets [1] (--value-norm)
-    memory: Memory | None = None  # --self-imitation's remembered samples [C, ...], else None
 
 
 def _updates(config: OnPolicyConfig, episodes: int) -> int:
@@ -281,13 +270,6 @@ class Batch:
     values: jax.Array  # [B] the rollout's values V_old (standardised with --value-norm)
     mask: jax.Array  # [B] sample weights: 0 after a termination or for no rover, else 1 (--balance-sizes: B / N)
     teacher: jax.Array | None = None  # [B, A] the oracle's actions (--teacher), else None
-    discounted: jax.Array | None = None  # [B] returns to the episode's end (--self-imitation), else None
-
-
-def standardised(config: PPOConfig, stats: ObsNorm, returns: jax.Array) -> jax.Array:
-    """Returns in the value network's units: standardised by the value targets' running
-    ``stats`` with --value-norm, else as they are."""
-    return (returns - stats.mean[0]) / std(stats)[0] if config.value_norm else returns
 
 
 def _masked_mean(x: jax.Array, mask: jax.Array) -> jax.Array:
@@ -334,15 +316,11 @@ def ppo_loss(
     return total, parts
 
 
-def update_minibatch(
-    config: OnPolicyConfig, state: PPOState, batch: Batch, memory: Memory | None = None
-) -> tuple[PPOState, dict[str, jax.Array]]:
+def update_minibatch(config: OnPolicyConfig, state: PPOState, batch: Batch) -> tuple[PPOState, dict[str, jax.Array]]:
     """One gradient step of the actor and of the value network on ``batch``; returns the
     state (networks and optimiser states changed) and :func:`ppo_loss`'s parts (with
     --teacher, also ``imitation_loss``: the mean squared distance of the mean action from the
-    oracle's, the samples weighted as in the PPO loss). With --self-imitation, ``memory`` is a
-    minibatch of remembered rows whose loss joins PPO's (parts ``self_imitation_loss`` and
-    ``self_imitation_advantage``, their mean A+)."""
+    oracle's, the samples weighted as in the PPO loss)."""
     nets = policy_networks(config.learner, config.ppo)
     actor_opt, critic_opt = optimizers(config)
 
@@ -352,21 +330,11 @@ def update_minibatch(
         entropy = jnp.broadcast_to(gaussian_entropy(log_std), log_probs.shape)
         values = nets.value(critic, batch.critic_inputs)
         total, parts = ppo_loss(config.ppo, log_probs, entropy, values, batch)
-        if batch.teacher is not None:
-            imitation = _masked_mean(jnp.sum(jnp.square(mean - batch.teacher), axis=-1), batch.mask)
-            total = total + teacher_weight(config, state.actor_opt) * imitation
-            parts = {**parts, "imitation_loss": imitation}
-        if memory is not None:
-            remembered, log_std = nets.policy(actor, memory.actor_inputs)
-            own, advantage = self_imitation.loss(
-                gaussian_log_prob(memory.actions, remembered, jax.lax.stop_gradient(log_std)),
-                nets.value(critic, memory.critic_inputs),
-                memory,
-                lambda returns: standardised(config.ppo, state.returns, returns),
-            )
-            total = total + config.ppo.self_imitation * own
-            parts = {**parts, "self_imitation_loss": own, "self_imitation_advantage": advantage}
-        return total, parts
+        if batch.teacher is None:
+            return total, parts
+        imitation = _masked_mean(jnp.sum(jnp.square(mean - batch.teacher), axis=-1), batch.mask)
+        weight = teacher_weight(config, state.actor_opt)
+        return total + weight * imitation, {**parts, "imitation_loss": imitation}
 
     (_, parts), (actor_grads, critic_grads) = jax.value_and_grad(loss, argnums=(0, 1), has_aux=True)(
         state.actor, state.critic

@@ -21,7 +21,6 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from roverswarm.algos import self_imitation
 from roverswarm.algos.learner import AlgoConfig
 from roverswarm.algos.normalize import ObsNorm, std, update_obs_norm
 from roverswarm.algos.ppo import (
@@ -33,13 +32,11 @@ from roverswarm.algos.ppo import (
     gae,
     gaussian_log_prob,
     init_ppo,
-    standardised,
     update_minibatch,
     updates_per_iteration,
 )
 from roverswarm.algos.ppo_networks import policy_networks
-from roverswarm.algos.self_imitation import Memory
-from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, reset, step_env
+from roverswarm.env.mars import EnvParams, observation_size, reset, step_env
 from roverswarm.env.scenarios import draw_sizes, range_sizes, sized
 from roverswarm.errors import require, require_finite, require_positive
 from roverswarm.learners.base import Family, Runner, no_replay, seed_keys, start_runner
@@ -98,17 +95,13 @@ def check(config, params: EnvParams) -> None:
     if ppo.value_clip is not None:
         require_finite(ppo.value_clip, 0, "value-clip", strict=True)
     require(0 <= ppo.gae_lambda <= 1, f"--gae-lambda must be in [0, 1], got {ppo.gae_lambda}")
-    for name in ("ent_coef", "vf_coef", "teacher", "self_imitation"):
+    for name in ("ent_coef", "vf_coef", "teacher"):
         require_finite(getattr(ppo, name), 0, name.replace("_", "-"))
     for name in ("anneal_episodes", "teacher_episodes"):
         require(getattr(ppo, name) >= 0, f"--{name.replace('_', '-')} must be >= 0, got {getattr(ppo, name)}")
     require(
         not ppo.teacher_episodes or ppo.teacher > 0,
         f"--teacher-episodes decays the --teacher weight; give --teacher > 0 with it (got --teacher {ppo.teacher})",
-    )
-    require(
-        ppo.self_imitation_memory > 0,
-        f"--self-imitation-memory must be a positive number of samples, got {ppo.self_imitation_memory}",
     )
     require(ppo.activation in ("tanh", "relu"), f"--activation must be 'tanh' or 'relu', got '{ppo.activation}'")
     require(
@@ -128,29 +121,17 @@ def sizes_of(config: OnPolicyConfig) -> tuple[int, ...] | None:
     return None if config.mission is not None else range_sizes(config.scenario)
 
 
-def _fresh(config: OnPolicyConfig, params: EnvParams):
-    """key -> one seed's fresh networks, and with --self-imitation its empty memory."""
-    sizes = (params.num_rovers, observation_size(params))
-    if not config.ppo.self_imitation:
-        return lambda key: init_ppo(key, config, *sizes)
-    nets = policy_networks(config.learner, config.ppo)
-    obs = jax.eval_shape(lambda: nets.observe(reset(jax.random.PRNGKey(0), params)[1], params))
-    row = lambda inputs: jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape[1:], s.dtype), jax.eval_shape(inputs, obs))  # noqa: E731
-    memory = self_imitation.empty_memory(
-        config.ppo.self_imitation_memory, row(nets.actor_inputs), row(nets.critic_inputs), ACTION_SIZE
-    )
-    return lambda key: init_ppo(key, config, *sizes).replace(memory=memory)
-
-
 def init(config: OnPolicyConfig, params: EnvParams, seed: int) -> Runner:
     """Fresh networks for every seed of base seed ``seed`` (keys derived from (seed, s) as
     off-policy); no replay."""
-    return start_runner(seed, config.seeds, _fresh(config, params))
+    sizes = (params.num_rovers, observation_size(params))
+    return start_runner(seed, config.seeds, lambda key: init_ppo(key, config, *sizes))
 
 
 def learners(config: OnPolicyConfig, params: EnvParams) -> PPOState:
     """Every seed's fresh networks [S, ...] (a checkpoint's template)."""
-    return jax.vmap(_fresh(config, params))(seed_keys(0, config.seeds)[:, 0])
+    sizes = (params.num_rovers, observation_size(params))
+    return jax.vmap(lambda key: init_ppo(key, config, *sizes))(seed_keys(0, config.seeds)[:, 0])
 
 
 def _where_env(done: jax.Array, old, new):
@@ -277,16 +258,21 @@ def make_batch(config: OnPolicyConfig, state: PPOState, traj: Trajectory) -> tup
     values = values_of(config, state.critic, state.returns, traj.obs)  # [T, E, N]
     next_values = values_of(config, state.critic, state.returns, traj.next_obs)
     per_rover = lambda x: jnp.broadcast_to(x[..., None], values.shape)  # noqa: E731
-    terminated, truncated = per_rover(traj.terminated), per_rover(traj.truncated)
-    gamma = config.learner.gamma
-    with_lambda = lambda lam: gae(traj.rewards, values, next_values, terminated, gamma, lam, truncated)  # noqa: E731
-    advantages, targets = with_lambda(config.ppo.gae_lambda)
-    discounted = with_lambda(1.0)[1] if config.ppo.self_imitation else None
+    advantages, targets = gae(
+        traj.rewards,
+        values,
+        next_values,
+        per_rover(traj.terminated),
+        config.learner.gamma,
+        config.ppo.gae_lambda,
+        per_rover(traj.truncated),
+    )
     mask = per_rover(traj.mask) * traj.rovers
     returns = state.returns
     if config.ppo.value_norm:
         returns = update_obs_norm(returns, targets[..., None], mask)
-        targets, values = standardised(config.ppo, returns, targets), standardised(config.ppo, returns, values)
+        targets = (targets - returns.mean[0]) / std(returns)[0]
+        values = (values - returns.mean[0]) / std(returns)[0]
     flat = lambda tree: jax.tree.map(lambda x: x.reshape(-1, *x.shape[3:]), tree)  # noqa: E731
     batch = Batch(
         actor_inputs=flat(nets.actor_inputs(traj.obs)),
@@ -298,7 +284,6 @@ def make_batch(config: OnPolicyConfig, state: PPOState, traj: Trajectory) -> tup
         values=flat(values),
         mask=flat(mask * size_weights(traj.rovers) if config.ppo.balance_sizes else mask),
         teacher=flat(traj.teacher),
-        discounted=flat(discounted),
     )
     return batch, returns
 
@@ -311,8 +296,7 @@ def size_weights(rovers: jax.Array) -> jax.Array:
 
 def iteration(config: OnPolicyConfig, params: EnvParams, state: PPOState, xs: tuple[jax.Array, jax.Array]):
     """One PPO iteration of one seed (``xs``: its key and the episodes trained before it): E
-    episodes, GAE, ``epochs`` x ``minibatches`` updates (with --self-imitation, the memory
-    renewed first and each update given a minibatch of it).
+    episodes, GAE, ``epochs`` x ``minibatches`` updates.
 
     Returns the state and ``(episode stats [E], learner info (means over the updates))``."""
     key, episodes = xs
@@ -321,42 +305,14 @@ def iteration(config: OnPolicyConfig, params: EnvParams, state: PPOState, xs: tu
     batch, returns = make_batch(config, state, traj)
     state = state.replace(returns=returns)
     size = batch.mask.shape[0]
-    epochs, count = config.ppo.epochs, config.ppo.minibatches
-    drawn = None
-    if config.ppo.self_imitation:
-        state, drawn = _remember(config, state, batch, jax.random.fold_in(key, 2))
-        batch = batch.replace(discounted=None)
 
-    def epoch(state, xs):
-        key, drawn = xs
+    def epoch(state, key):
         order = jax.random.permutation(key, size)
-        minibatches = jax.tree.map(lambda x: x[order].reshape(count, -1, *x.shape[1:]), batch)
-        return jax.lax.scan(lambda s, mb: update_minibatch(config, s, *mb), state, (minibatches, drawn))
+        minibatches = jax.tree.map(lambda x: x[order].reshape(config.ppo.minibatches, -1, *x.shape[1:]), batch)
+        return jax.lax.scan(partial(update_minibatch, config), state, minibatches)
 
-    state, info = jax.lax.scan(epoch, state, (jax.random.split(k_shuffle, epochs), drawn))
+    state, info = jax.lax.scan(epoch, state, jax.random.split(k_shuffle, config.ppo.epochs))
     return state, (episode, jax.tree.map(jnp.mean, info))
-
-
-def _remember(config: OnPolicyConfig, state: PPOState, batch: Batch, key: jax.Array) -> tuple[PPOState, Memory]:
-    """--self-imitation: the memory renewed with the iteration's samples, and the rows every
-    update draws from it [epochs, minibatches, m, ...], m = B / (epochs x minibatches)."""
-    nets = policy_networks(config.learner, config.ppo)
-    samples = Memory(
-        actor_inputs=batch.actor_inputs,
-        critic_inputs=batch.critic_inputs,
-        actions=batch.actions,
-        returns=batch.discounted,
-        weights=batch.mask,
-    )
-    standardise = partial(standardised, config.ppo, state.returns)
-    memory, advantages = self_imitation.remember(
-        state.memory,
-        samples,
-        lambda rows: self_imitation.clipped_advantages(rows, nets.value(state.critic, rows.critic_inputs), standardise),
-    )
-    epochs, count = config.ppo.epochs, config.ppo.minibatches
-    shape = (epochs, count, max(batch.mask.shape[0] // (epochs * count), 1))
-    return state.replace(memory=memory), self_imitation.draw(key, memory, advantages, shape)
 
 
 @partial(jax.jit, static_argnums=(0,), donate_argnums=(2,))
@@ -405,11 +361,7 @@ FAMILY = Family(
     act=_act,
     view=_view,
     weights=lambda state: (state.actor, None),  # no observation normaliser
-    metric_names=lambda config: (
-        PPO_METRICS
-        + (("imitation_loss",) if config.ppo.teacher else ())
-        + (("self_imitation_loss", "self_imitation_advantage") if config.ppo.self_imitation else ())
-    ),
+    metric_names=lambda config: PPO_METRICS + (("imitation_loss",) if config.ppo.teacher else ()),
     replay=False,
     replay_buffer=lambda program, params: None,
     replay_bytes=no_replay,
