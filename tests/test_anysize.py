@@ -14,13 +14,14 @@ import pytest
 from roverswarm import train
 from roverswarm.algos import ppo
 from roverswarm.algos.ppo_networks import swarm_tokens
-from roverswarm.config import ANYSIZE, TrainConfig, validate, with_options
+from roverswarm.config import ANYSIZE, validate, with_options
 from roverswarm.env import get_scenario, reset
 from roverswarm.env.entities import CLAIM, LEAD, TOKEN_FEATURES, flat_tokens, nearest_entities, observe_entities
 from roverswarm.env.mars import NEVER, step_env
+from roverswarm.episodes import reset_all, size_cap, training_params
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
-from roverswarm.learners.onpolicy import _reset_all, collect, configure, make_batch, size_cap, training_params
+from roverswarm.learners.onpolicy import collect, configure, make_batch
 from roverswarm.runs import Run
 
 
@@ -122,7 +123,7 @@ def test_fail_max_rovers_fails_and_shapes_only_the_small_swarms(tiny_anysize):
     many = dataclasses.replace(tiny_anysize, num_envs=20, fail_rate=1.0, fail_max_rovers=3)
     params = validate(many)
     config = configure(many, params)
-    state = _reset_all(config, training_params(config, params), jax.random.PRNGKey(3), jnp.asarray(0))
+    state = reset_all(config, training_params(config, params), jax.random.PRNGKey(3), jnp.asarray(0))
     sizes = np.asarray(state.rover_mask).sum(-1)
     assert {3, 4} <= set(sizes)
     failing = (np.asarray(state.fail_step) < NEVER).sum(-1)
@@ -207,7 +208,7 @@ def test_a_flat_policy_refuses_another_size(tiny_ppo_config, tmp_path, capsys):
 @pytest.mark.parametrize(
     "options, pattern",
     [
-        ({"scenario": "paper-2..4", "network": "mlp"}, "needs --network entity or nearest"),
+        ({"scenario": "paper-2..4", "network": "mlp"}, "needs --network nearest, or entity with"),
         ({"entity_nearest": 0}, "--network nearest needs --entity-nearest K >= 1"),
         ({"fail_rate": 1.5}, r"--fail-rate must be in \[0, 1\]"),
         ({"size_curriculum": 100, "scenario": "paper-3"}, "--size-curriculum needs a range"),
@@ -227,19 +228,6 @@ def test_a_flat_policy_refuses_another_size(tiny_ppo_config, tmp_path, capsys):
 def test_bad_any_size_options_name_the_field(options, pattern):
     with pytest.raises(UserError, match=pattern):
         validate(with_options(ANYSIZE, options))
-
-
-@pytest.mark.parametrize(
-    "options, option",
-    [
-        ({"network": "entity"}, "--network entity"),
-        ({"fail_rate": 0.1}, "--fail-rate 0.1"),
-        ({"stop_when_complete": True}, "--stop-when-complete"),
-    ],
-)
-def test_the_off_policy_family_refuses_entity_networks_failures_and_stops_for_now(options, option):
-    with pytest.raises(UserError, match=f"^{option}: --algo maddpg has only the flat view.s and --network nearest.s"):
-        validate(with_options(TrainConfig(), options))
 
 
 def test_the_nearest_view_is_the_k_nearest_of_each_type_sorted_and_padded():

@@ -117,8 +117,10 @@ def test_a_nearest_off_policy_run_drives_swarms_it_never_saw(nearest_config, tmp
     [
         ({"share_parameters": False}, "--network nearest with --algo maddpg needs --share-parameters"),
         ({"critic_neighbors": 0}, "--network nearest with --algo maddpg needs --critic-neighbors C >= 1"),
-        ({"scenario": "paper-2..4"}, "^--scenario paper-2..4: --algo maddpg has only"),
-        ({"network": "entity"}, "^--network entity: --algo maddpg has only"),
+        ({"network": "entity"}, "^--network entity: --algo maddpg has the flat view's and --network nearest's"),
+        ({"stop_when_complete": True}, "^--stop-when-complete: --algo maddpg learns from fixed-length episodes"),
+        ({"one_batch": True, "replay": "ranked"}, "^--one-batch needs --share-parameters and --replay uniform"),
+        ({"one_batch": True, "share_parameters": False}, "needs --share-parameters"),
         ({"normalize_obs": True}, "--normalize-obs with --network nearest"),
     ],
 )

@@ -14,9 +14,10 @@ from roverswarm import train
 from roverswarm.algos import ppo
 from roverswarm.algos.ppo_networks import policy_networks
 from roverswarm.config import ANYSIZE, TrainConfig, validate, with_options
+from roverswarm.episodes import reset_all, training_params
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
-from roverswarm.learners.onpolicy import _reset_all, collect, configure, make_batch, training_params
+from roverswarm.learners.onpolicy import collect, configure, make_batch
 from roverswarm.oracle import greedy_match, greedy_plan, oracle_actions
 from roverswarm.runs import Run
 
@@ -58,7 +59,7 @@ def test_greedy_plan_matches_every_real_rover_to_its_own_real_poi(tiny_teacher):
     real POI of its own, the empty slots none."""
     params = validate(tiny_teacher)
     config = configure(tiny_teacher, params)
-    states = _reset_all(config, params, jax.random.PRNGKey(1), jnp.asarray(10**6))
+    states = reset_all(config, params, jax.random.PRNGKey(1), jnp.asarray(10**6))
     plans = jax.vmap(greedy_plan, in_axes=(0, None))(states, params)
     for poi, rovers, pois in zip(np.asarray(plans.poi), np.asarray(states.rover_mask), np.asarray(states.poi_mask)):
         real = poi[rovers]
@@ -84,7 +85,7 @@ def test_the_trajectory_holds_the_oracles_actions_and_the_loss_their_distance(ti
         return traj.teacher[0], batch, nets.policy(state.actor, batch.actor_inputs)[0], parts
 
     first, batch, mean, parts = one_update(key)
-    starts = _reset_all(config, training_params(config, params), jax.random.split(key)[0], jnp.asarray(0))
+    starts = reset_all(config, training_params(config, params), jax.random.split(key)[0], jnp.asarray(0))
     plans = jax.vmap(greedy_plan, in_axes=(0, None))(starts, params)
     labels = jax.jit(jax.vmap(oracle_actions, in_axes=(0, 0, None)), static_argnums=2)(starts, plans, params)
     np.testing.assert_allclose(first, labels, atol=1e-6)

@@ -222,8 +222,8 @@ def validate(config: TrainConfig) -> EnvParams:
     if config.mission is None and range_sizes(config.scenario) is not None:
         require(
             config.learner.network in ("entity", "nearest"),
-            f"--scenario {config.scenario} draws a swarm size per episode: it needs --network entity or nearest "
-            "(networks that serve any size; start from --preset anysize)",
+            f"--scenario {config.scenario} draws a swarm size per episode: it needs --network nearest, or entity with "
+            "--algo mappo or ippo (networks that serve any size; start from --preset anysize)",
         )
         params = padded_scenario(config.scenario)
     elif config.mission is None:

@@ -4,6 +4,7 @@
     python docs/results/any-size/probe.py --name cur20k --episodes 20000 --set '{"size_curriculum": 10000}'
     python docs/results/any-size/probe.py --name mix25 --episodes 20000 --sizes 2,3,5 --set '{"scenario": "paper-2..5"}'
     python docs/results/any-size/probe.py --name fail60k --episodes 60000 --stress --set '{"fail_rate": 0.5}'
+    python docs/results/any-size/probe.py --name matd3 --preset swarm --set '{"scenario": "paper-2..10", ...}'
 
 ``--set`` is JSON: top-level fields of the config, ``learner.*`` and ``ppo.*`` fields. Trains
 into ``--runs/NAME`` (resumed if there), evaluates every seed at ``--sizes`` (300 episodes per
@@ -26,15 +27,19 @@ import numpy as np
 from any_size import anysize, stress  # the script beside this one
 
 from roverswarm import train
+from roverswarm.config import PRESETS
 from roverswarm.evaluate import evaluate_run
 from roverswarm.jaxcache import enable_compilation_cache
 from roverswarm.runs import CONFIG
 
 
-def configured(overrides: dict, episodes: int, seeds: int):
-    """The anysize preset for ``episodes`` (its learning rates annealed over them) with
-    ``overrides`` (``learner.x`` / ``ppo.x`` / top-level names)."""
-    base = anysize(episodes, seeds)
+def configured(overrides: dict, episodes: int, seeds: int, preset: str = "anysize"):
+    """The anysize preset for ``episodes`` (its learning rates annealed over them), or another
+    ``preset``, with ``overrides`` (``learner.x`` / ``ppo.x`` / top-level names)."""
+    if preset == "anysize":
+        base = anysize(episodes, seeds)
+    else:
+        base = dataclasses.replace(PRESETS[preset], episodes=episodes, seeds=seeds)
     top = {k: v for k, v in overrides.items() if "." not in k}
     part = lambda prefix: {  # noqa: E731
         k.split(".", 1)[1]: tuple(v) if isinstance(v, list) else v for k, v in overrides.items() if k.startswith(prefix)
@@ -55,6 +60,7 @@ def main() -> None:
     parser.add_argument("--sizes", default="2,3,5,8,12")
     parser.add_argument("--eval-episodes", type=int, default=300)
     parser.add_argument("--set", default="{}", help="JSON of the changed settings")
+    parser.add_argument("--preset", default="anysize", choices=sorted(PRESETS), help="the settings changed")
     parser.add_argument("--runs", type=Path, default=Path("runs/probes"))
     parser.add_argument("--log", type=Path, default=Path("runs/probes/probes.txt"))
     parser.add_argument("--stress", action="store_true", help="also mission stress of the example mission")
@@ -62,7 +68,7 @@ def main() -> None:
     enable_compilation_cache()
     out = args.runs / args.name
     start = time.time()
-    config = configured(json.loads(args.set), args.episodes, args.seeds)
+    config = configured(json.loads(args.set), args.episodes, args.seeds, args.preset)
     train(config, out=out, resume=(out / CONFIG).exists(), progress=False)
     minutes = (time.time() - start) / 60
     sizes: dict[str, dict] = {}

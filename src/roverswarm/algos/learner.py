@@ -67,6 +67,10 @@ class AlgoConfig:
     over --network nearest, which serves any swarm size) and the critic's view ordered
     own-first; every update learns from all rovers' batches. Not with --ensemble > 1 or
     --infer-policies."""
+    one_batch: bool = False
+    """With --share-parameters (uniform replay): each update draws one batch of transitions and
+    learns from every rover in it, instead of one batch per rover; the compact replay then
+    rebuilds N times fewer observations per update (what makes training across sizes fast)."""
     critic_neighbors: int = 0
     """MADDPG: each critic sees its own rover and only the nearest this many other rovers
     (their observations and actions, nearest first by the positions in the observations it is
@@ -90,7 +94,7 @@ class AlgoConfig:
     attention over the entity view (other rovers, POIs, traps as tokens, no rover ids);
     `nearest`: an MLP over the --entity-nearest K nearest of each type, nearest first. The last
     two serve any swarm size (MAPPO and IPPO; `nearest` also MADDPG and DDPG with
-    --share-parameters, on one swarm size in training)."""
+    --share-parameters)."""
     entity_dim: int = 64
     """--network entity: width of the entity embeddings (the encoder's output is twice this)."""
     entity_heads: int = 4
@@ -173,22 +177,30 @@ def actor_inputs(config: AlgoConfig, obs: jax.Array) -> jax.Array:
     return jnp.concatenate([obs, jnp.broadcast_to(jnp.eye(n, dtype=obs.dtype), (*obs.shape[:-2], n, n))], axis=-1)
 
 
-def critic_inputs(config: AlgoConfig, obs: jax.Array, actions: jax.Array, agent: jax.Array) -> jax.Array:
+def critic_inputs(
+    config: AlgoConfig, obs: jax.Array, actions: jax.Array, agent: jax.Array, rovers: jax.Array | None = None
+) -> jax.Array:
     """What agent ``agent``'s critic sees: [B, N, O] observations and [B, N, A] actions -> [B, D].
     Shared parameters: own-first order and, over the flat view, the one-hot index appended.
     ``critic_neighbors`` K > 0: the agent and its K nearest other rovers, nearest first, in each
-    transition."""
+    transition; of mixed swarm sizes (``rovers`` [B, N] bool: the rovers that exist), the
+    nearest that exist, then zeros where a swarm has fewer than K others."""
     batch, n = obs.shape[:2]
     if config.algo == "ddpg":
         inputs = [obs[:, agent], actions[:, agent]]
     elif config.critic_neighbors:
         pos = obs[..., OWN_POSITION]  # [B, N, 2]
-        dist = jnp.sum(jnp.square(pos - pos[:, agent, None]), axis=-1).at[:, agent].set(-1.0)  # own first
+        dist = jnp.sum(jnp.square(pos - pos[:, agent, None]), axis=-1)
+        if rovers is not None:
+            dist = jnp.where(rovers, dist, jnp.inf)
+        dist = dist.at[:, agent].set(-1.0)  # own first
         order = jnp.argsort(dist, axis=1, stable=True)[:, : 1 + config.critic_neighbors, None]  # ties: lower index
-        inputs = [
-            jnp.take_along_axis(obs, order, axis=1).reshape(batch, -1),
-            jnp.take_along_axis(actions, order, axis=1).reshape(batch, -1),
-        ]
+        present = True if rovers is None else jnp.take_along_axis(rovers[..., None], order, axis=1)
+
+        def seen(x: jax.Array) -> jax.Array:  # [B, 1 + K, ...] flattened, zero where no rover is
+            return jnp.where(present, jnp.take_along_axis(x, order, axis=1), 0.0).reshape(batch, -1)
+
+        inputs = [seen(obs), seen(actions)]
     elif config.share_parameters:
         order = jnp.concatenate([agent[None], jnp.asarray(other_rovers(n))[agent]])
         inputs = [obs[:, order].reshape(batch, -1), actions[:, order].reshape(batch, -1)]

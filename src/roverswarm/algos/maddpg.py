@@ -57,6 +57,10 @@ Options for swarms (homogeneous rovers), each off by default and composable:
   thing for every rover. Each update takes every rover's batch: the losses below are
   averaged over rovers, one gradient step per network, so the shared networks learn from N
   times the data. Parameters keep a leading group axis of size 1.
+* Mixed swarm sizes (a batch with ``rovers``, the slots that exist; shared parameters
+  only): a sample whose agent's rover does not exist weighs nothing in either loss, the others
+  weigh alike (:func:`presence`), so the means run over the rovers that exist; the critic's
+  neighbours are picked among them; empty slots hand the replay a TD loss of 0.
 * ``critic_neighbors`` C > 0 (MADDPG): the critic of rover i sees o_i, a_i and the
   observations and actions of the C other rovers nearest to it in that transition, nearest
   first, in place of all N: between the centralised critic and DDPG's local one.
@@ -129,9 +133,8 @@ def _td_target(
     config: AlgoConfig, target_critic, agent: jax.Array, batch: Transition, next_actions: jax.Array
 ) -> jax.Array:
     """y [B] of agent ``agent`` (eq. 6; twin critics: the smaller target estimate)."""
-    next_q = critic_values(config, target_critic, critic_inputs(config, batch.next_obs, next_actions, agent)).min(
-        axis=0
-    )
+    inputs = critic_inputs(config, batch.next_obs, next_actions, agent, batch.rovers)
+    next_q = critic_values(config, target_critic, inputs).min(axis=0)
     not_done = 1.0 - batch.terminated.astype(jnp.float32)
     return jax.lax.stop_gradient(batch.rewards[:, agent] + config.gamma * not_done * next_q)
 
@@ -140,19 +143,33 @@ def _critic_loss(
     config: AlgoConfig, critic, agent: jax.Array, batch: Transition, target: jax.Array, weights: jax.Array
 ):
     """(weighted mean squared TD error, summed over twin critics; (first critic's TD loss [B], its Q [B]))."""
-    q = critic_values(config, critic, critic_inputs(config, batch.obs, batch.actions, agent))  # [C, B]
+    q = critic_values(config, critic, critic_inputs(config, batch.obs, batch.actions, agent, batch.rovers))  # [C, B]
     td = jnp.square(q - target)
     return sum(jnp.mean(weights * t) for t in td), (td[0], q[0])
 
 
-def _actor_loss(config: AlgoConfig, actor, critic, agent: jax.Array, obs: jax.Array, actions: jax.Array) -> jax.Array:
+def _actor_loss(
+    config: AlgoConfig,
+    actor,
+    critic,
+    agent: jax.Array,
+    obs: jax.Array,
+    actions: jax.Array,
+    rovers: jax.Array | None = None,
+    weights: jax.Array | None = None,
+) -> jax.Array:
     """Agent ``agent``'s actor loss (eq. 4) on [B, N, O] observations: the other agents'
-    actions from the replay, its own from ``actor``, judged by the (first) critic."""
+    actions from the replay, its own from ``actor``, judged by the (first) critic; of mixed
+    swarm sizes, ``rovers`` [B, N] are the rovers that exist and ``weights`` [B] each sample's
+    weight (0 where the agent does not exist)."""
     actor_net, _ = networks(config)
     action, pre = actor_forward(actor_net, actor, actor_inputs(config, obs)[:, agent])
     actions = actions.at[:, agent].set(action)
-    q_pi = critic_values(config, critic, critic_inputs(config, obs, actions, agent))[0]
-    return -jnp.mean(q_pi) + config.action_penalty * jnp.mean(jnp.square(pre))
+    q_pi = critic_values(config, critic, critic_inputs(config, obs, actions, agent, rovers))[0]
+    penalty = jnp.square(pre)
+    if weights is not None:
+        q_pi, penalty = weights * q_pi, weights[:, None] * penalty
+    return -jnp.mean(q_pi) + config.action_penalty * jnp.mean(penalty)
 
 
 def _apply(optimizer: optax.GradientTransformation, grads, opt_state, params):
@@ -231,23 +248,43 @@ def _agent_update(
     return new_state, info
 
 
+def presence(rovers: jax.Array) -> jax.Array:
+    """[N, B] each agent's sample weight in a batch of mixed swarm sizes, from ``rovers`` [N, B,
+    N] (agent i's batch: which rovers exist): 0 where the agent's rover does not exist, and
+    the same weight for every sample where it does, so that a mean over [N, B] is the mean over
+    the rovers that exist."""
+    own = jax.vmap(lambda r, i: r[:, i])(rovers, jnp.arange(rovers.shape[0])).astype(jnp.float32)
+    return own * (own.size / jnp.maximum(own.sum(), 1.0))
+
+
 def _shared_update(
-    config: AlgoConfig, state: LearnerState, batch: Transition, weights: jax.Array, key: jax.Array, due: jax.Array
+    config: AlgoConfig,
+    state: LearnerState,
+    batch: Transition,
+    weights: jax.Array,
+    key: jax.Array,
+    due: jax.Array,
+    present: jax.Array | None,
 ):
     """One step of the shared actor and critic on every agent's batch [N, B, ...]: each
-    agent's losses as in :func:`_agent_update`, averaged over agents."""
+    agent's losses as in :func:`_agent_update`, averaged over agents; of mixed swarm sizes,
+    over the rovers that exist (``present`` [N, B], :func:`presence`; ``weights`` carry it)."""
     actor_opt, critic_opt = optimizers(config)
     num_agents = batch.rewards.shape[0]
     agents = jnp.arange(num_agents)
     one = lambda tree: jax.tree.map(lambda x: x[0], tree)  # noqa: E731  the group axis of size 1
     keys = jax.random.split(key, num_agents) if config.target_noise > 0 else jnp.zeros(num_agents)
 
-    def target(agent, b, k):
-        return _td_target(
-            config, one(state.target_critic), agent, b, smoothed(config, act(config, state.target_actor, b.next_obs), k)
-        )
+    def target(agent, b, k, next_actions=None):
+        if next_actions is None:
+            next_actions = act(config, state.target_actor, b.next_obs)
+        return _td_target(config, one(state.target_critic), agent, b, smoothed(config, next_actions, k))
 
-    targets = jax.vmap(target)(agents, batch, keys)  # [N, B]
+    if config.one_batch:  # every agent's batch is the same: its target actions once
+        next_actions = act(config, state.target_actor, batch.next_obs[0])
+        targets = jax.vmap(target, in_axes=(0, 0, 0, None))(agents, batch, keys, next_actions)  # [N, B]
+    else:
+        targets = jax.vmap(target)(agents, batch, keys)
 
     def critic_loss(params):
         losses, aux = jax.vmap(lambda i, b, y, w: _critic_loss(config, params, i, b, y, w))(
@@ -259,7 +296,9 @@ def _shared_update(
     critic, critic_opt_state = _apply(critic_opt, c_grads, one(state.critic_opt), one(state.critic))
 
     def actor_loss(params):
-        losses = jax.vmap(lambda i, b: _actor_loss(config, params, critic, i, b.obs, b.actions))(agents, batch)
+        losses = jax.vmap(lambda i, b, w: _actor_loss(config, params, critic, i, b.obs, b.actions, b.rovers, w))(
+            agents, batch, present
+        )
         return losses.mean(), losses
 
     (_, a_loss), a_grads = jax.value_and_grad(actor_loss, has_aux=True)(one(state.actor))
@@ -268,6 +307,8 @@ def _shared_update(
     new_state = _finish(
         config, state, group(actor), group(actor_opt_state), group(critic), group(critic_opt_state), due
     )
+    if present is not None:  # a sample of an agent that does not exist is no reason to draw it again
+        td = td * (present > 0)
     return new_state, dict(critic_loss=c_loss, actor_loss=a_loss, q_mean=q.mean(-1), td_loss=td)
 
 
@@ -300,8 +341,14 @@ def update(
     batch = prepare(config, state, batch)
     recent = None if recent is None else prepare(config, state, recent)
     due = jnp.asarray(True) if state.updates is None else state.updates % config.actor_delay == 0
+    present = None
+    if batch.rovers is not None:
+        if not config.share_parameters:
+            raise ValueError("update: a batch of mixed swarm sizes needs --share-parameters")
+        present = presence(batch.rovers)
+        weights = weights * present
     if config.share_parameters:
-        new, info = _shared_update(config, state, batch, weights, key, due)
+        new, info = _shared_update(config, state, batch, weights, key, due, present)
     else:
         by_agent = lambda tree: jax.tree.map(lambda x: x.reshape(-1, config.ensemble, *x.shape[1:]), tree)  # noqa: E731
         flat = lambda tree: jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), tree)  # noqa: E731

@@ -60,6 +60,7 @@ from flax import struct
 from roverswarm.algos.learner import AlgoConfig
 from roverswarm.algos.normalize import ObsNorm, init_obs_norm
 from roverswarm.algos.ppo_networks import policy_networks
+from roverswarm.episodes import EpisodeOptions
 
 # ----------------------------------------------------------------------------- configuration
 
@@ -117,23 +118,16 @@ class PPOConfig:
 
 
 @dataclass(frozen=True)
-class OnPolicyConfig:
+class OnPolicyConfig(EpisodeOptions):
     """What shapes the on-policy family's chunk, and all this module reads: the fields of the
     run's :class:`~roverswarm.config.TrainConfig` of the same names (so a ``TrainConfig``
-    serves wherever one is read)."""
+    serves wherever one is read), the episodes' among them."""
 
     learner: AlgoConfig
     ppo: PPOConfig
     seeds: int
     num_envs: int
     log_every: int
-    scenario: str = "paper-3"
-    mission: str | None = None
-    size_curriculum: int = 0
-    size_draw_power: float = 0.0
-    fail_rate: float = 0.0
-    fail_max_rovers: int = 0
-    stop_when_complete: bool = False
 
 
 def updates_per_iteration(config: PPOConfig) -> int:

@@ -53,6 +53,7 @@ class Transition:
     next_obs: jax.Array  # [..., N, O], the true next observation (before any reset)
     terminated: jax.Array  # [...] bool; a truncation is not a termination
     policy: Any = None  # [..., N] int32 sub-policy each agent ran (policy ensembles only)
+    rovers: Any = None  # [..., N] bool the rovers that exist (swarm sizes mixed in training only)
 
 
 @struct.dataclass

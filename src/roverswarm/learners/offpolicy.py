@@ -13,6 +13,12 @@ and the layout, from which each update's batch rebuilds its observations, see
 jitted call per 1000 episodes, keyed on :class:`OffPolicyConfig` only. The number of updates
 per environment step is the same whatever E is: one update of every agent per
 ``update_every`` environment steps.
+
+Across swarm sizes (``--scenario paper-2..10`` over ``--network nearest`` with
+``--share-parameters``): every episode draws its size as on-policy
+(:mod:`roverswarm.episodes`, with ``--size-curriculum``, ``--size-draw-power`` and
+failures), N is the range's largest, the replay keeps each episode's masks, and the update
+weighs only the rovers that exist (:func:`roverswarm.algos.maddpg.presence`).
 """
 
 from __future__ import annotations
@@ -39,10 +45,11 @@ from roverswarm.buffers.base import (
     recent_indices,
 )
 from roverswarm.env.entities import EntityView, flat_tokens, observe_nearest
-from roverswarm.env.mars import ACTION_SIZE, EnvParams, reset, step_env
+from roverswarm.env.mars import ACTION_SIZE, EnvParams, masks_of, observe, step_env
+from roverswarm.episodes import exists, reset_all, sizes_of, training_params, training_rewards
 from roverswarm.learners.base import Family, Runner, seed_keys, start_runner
 from roverswarm.learners.offpolicy_config import RUN_OPTIONS, OffPolicyConfig, check, configure, run_replay
-from roverswarm.metrics import episode_totals, reduce_metric, shaped_rewards, step_stats
+from roverswarm.metrics import episode_totals, reduce_metric, step_stats
 
 LEARNER_METRICS = ("critic_loss", "actor_loss", "q_mean", "sampled_loss", "sampled_loss_max", "sampled_newest")
 """Per-update metrics in ``metrics.csv`` (mean over agents; ``*_max``: max over agents and updates)."""
@@ -79,8 +86,16 @@ def vector_view(learner: AlgoConfig) -> Callable | None:
 
 
 def _replay(config: OffPolicyConfig, params: EnvParams) -> BufferState:
-    """One seed's empty compact replay; it keeps the observed POIs when the view shows them."""
-    return compact.init(_buffer(config, params), params, config.num_envs, view_of(config.learner) is not None)
+    """One seed's empty compact replay; it keeps the observed POIs when the view shows them,
+    each episode's masks when sizes are mixed and its failure steps when rovers fail."""
+    return compact.init(
+        _buffer(config, params),
+        params,
+        config.num_envs,
+        observed=view_of(config.learner) is not None,
+        padded=sizes_of(config) is not None,
+        failures=config.fail_rate > 0,
+    )
 
 
 def _sizes(learner: AlgoConfig, params: EnvParams) -> tuple[int, int]:
@@ -130,22 +145,33 @@ def importance_exponent(config: OffPolicyConfig, episodes: jax.Array, total: jax
     return start + jnp.minimum(episodes / total, 1.0) * (1.0 - start)
 
 
-def collect(config: OffPolicyConfig, params: EnvParams, learner: LearnerState, key: jax.Array, noise_std: jax.Array):
-    """E episodes of one seed with Gaussian exploration noise of std ``noise_std``; with
-    ensembles, every agent runs one sub-policy per episode, drawn uniformly in each environment.
+def collect(
+    config: OffPolicyConfig,
+    params: EnvParams,
+    learner: LearnerState,
+    key: jax.Array,
+    noise_std: jax.Array,
+    episodes: jax.Array | int = 0,
+):
+    """E episodes of one seed with Gaussian exploration noise of std ``noise_std``, after
+    ``episodes`` episodes of training (the size curriculum reads it), each of a size drawn
+    from a range scenario and with failures as the run says (:mod:`~roverswarm.episodes`);
+    with ensembles, every agent runs one sub-policy per episode, drawn uniformly in each environment.
 
     Returns the episodes for the replay (:class:`~roverswarm.buffers.compact.Collected`), the
     observations [T, E, N, O] the actors saw and the episode totals [E]
     (:func:`~roverswarm.metrics.episode_totals`).
     """
     k_reset, k_steps = jax.random.split(key)
-    obs, state = jax.vmap(reset, in_axes=(0, None))(jax.random.split(k_reset, config.num_envs), params)
+    params = training_params(config, params)
+    state = reset_all(config, params, k_reset, episodes)
+    rovers = exists(state)
     view = vector_view(config.learner)
 
     def see(flat, states):  # what the actors see: the flat view, or the learner's own
         return flat if view is None else jax.vmap(view, in_axes=(0, None))(states, params)
 
-    obs = see(obs, state)
+    obs = see(jax.vmap(observe, in_axes=(0, None))(state, params), state)
     k = config.learner.ensemble
     policy = None
     if k > 1:
@@ -158,7 +184,7 @@ def collect(config: OffPolicyConfig, params: EnvParams, learner: LearnerState, k
         next_obs, next_state, rewards, terminated, _, info = jax.vmap(step_env, in_axes=(0, 0, None))(
             state, actions, params
         )
-        learned = shaped_rewards(rewards, info, config.learner)
+        learned = training_rewards(config, rewards, info, rovers)
         stored = (compact.rovers_of(state), actions, learned, terminated, state.observed)
         return (see(next_obs, next_state), next_state), (stored, obs, step_stats(rewards, info))
 
@@ -167,6 +193,10 @@ def collect(config: OffPolicyConfig, params: EnvParams, learner: LearnerState, k
     )
     *steps, observed = steps
     kept = {} if view is None else {"observed": observed, "final_observed": last.observed}
+    if sizes_of(config) is not None:
+        kept["masks"] = masks_of(state)
+    if config.fail_rate > 0:
+        kept["fail_step"] = state.fail_step
     collected = compact.Collected(*steps, compact.layout_of(state), compact.rovers_of(last), policy, **kept)
     return collected, observations, episode_totals(stats)
 
@@ -192,7 +222,13 @@ def learn(
     expand = partial(
         compact.expand, buffer_state, params=params, num_envs=config.num_envs, view=vector_view(config.learner)
     )
-    batch = expand(draw.indices)
+    if config.learner.one_batch:  # every rover learns from the first group's draw, rebuilt once
+        draw = draw.replace(indices=jnp.broadcast_to(draw.indices[:1], draw.indices.shape))
+        batch = jax.tree.map(
+            lambda x: jnp.broadcast_to(x, (draw.indices.shape[0], *x.shape[1:])), expand(draw.indices[:1])
+        )
+    else:
+        batch = expand(draw.indices)
     weights = (
         importance_weights(draw, exponent) if config.buffer.importance_weights else jnp.ones(draw.probabilities.shape)
     )
@@ -222,8 +258,8 @@ def iteration(config: OffPolicyConfig, params: EnvParams, buffer: Buffer, total:
     """E episodes per seed, their transitions into the replay, then U updates per seed."""
     keys = jax.vmap(lambda k: jax.random.split(k, 3))(runner.key)  # [S, 3, 2]
     noise_std = noise_scale(config, runner.episodes)
-    collected, observations, episode = jax.vmap(partial(collect, config, params), in_axes=(0, 0, None))(
-        runner.learner, keys[:, 0], noise_std
+    collected, observations, episode = jax.vmap(partial(collect, config, params), in_axes=(0, 0, None, None))(
+        runner.learner, keys[:, 0], noise_std, runner.episodes
     )
     flat_obs = observations.reshape(observations.shape[0], -1, *observations.shape[3:])  # [S, K, N, O]
     learner = jax.vmap(partial(observe_batch, config.learner))(runner.learner, flat_obs)

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from roverswarm.algos.learner import AlgoConfig
 from roverswarm.buffers.base import ReplayConfig
 from roverswarm.env.mars import EnvParams
-from roverswarm.env.scenarios import range_sizes
+from roverswarm.episodes import EpisodeOptions
 from roverswarm.errors import require, require_finite, require_positive
 
 RUN_OPTIONS = ("update_every", "warmup", "noise_std", "noise_final", "noise_decay_episodes")
@@ -18,10 +18,11 @@ RUN_OPTIONS = ("update_every", "warmup", "noise_std", "noise_final", "noise_deca
 
 
 @dataclass(frozen=True)
-class OffPolicyConfig:
+class OffPolicyConfig(EpisodeOptions):
     """What shapes the off-policy chunk: the fields of the run's
     :class:`~roverswarm.config.TrainConfig` of the same names (so a ``TrainConfig`` serves
-    wherever one is read), with the replay capped at the run's own transitions."""
+    wherever one is read), the episodes' among them (``stop_when_complete`` is always False
+    here, see :func:`check`), with the replay capped at the run's own transitions."""
 
     learner: AlgoConfig
     buffer: ReplayConfig
@@ -49,18 +50,15 @@ def check(config, params: EnvParams) -> None:
     range and compose; else :class:`UserError` naming the option."""
     learner, replay = config.learner, config.buffer
     steps = config.num_envs * params.max_steps
-    unsupported = {
-        f"--network {learner.network}": learner.network == "entity",
-        f"--scenario {config.scenario}": config.mission is None and range_sizes(config.scenario) is not None,
-        f"--fail-rate {config.fail_rate}": config.fail_rate > 0,
-        "--stop-when-complete": config.stop_when_complete,
-    }
-    for option, given in unsupported.items():
-        require(
-            not given,
-            f"{option}: --algo {learner.algo} has only the flat view's and --network nearest's networks, one swarm "
-            "size per run, no failures and fixed-length episodes yet; use --algo mappo or ippo (--preset anysize)",
-        )
+    require(
+        learner.network != "entity",
+        f"--network entity: --algo {learner.algo} has the flat view's and --network nearest's networks; use --algo "
+        "mappo or ippo for attention over the entities",
+    )
+    require(
+        not config.stop_when_complete,
+        f"--stop-when-complete: --algo {learner.algo} learns from fixed-length episodes; use --algo mappo or ippo",
+    )
     nearest = learner.network == "nearest"
     require(
         not nearest or learner.share_parameters,
@@ -76,6 +74,11 @@ def check(config, params: EnvParams) -> None:
         not nearest or not learner.normalize_obs,
         "--normalize-obs with --network nearest: the view's constant entries (masks, types, radii) would be "
         "standardised by a spread of 0 and saturate on swarms of other sizes; leave it off",
+    )
+    require(
+        not learner.one_batch or (learner.share_parameters and replay.replay == "uniform"),
+        "--one-batch needs --share-parameters and --replay uniform: one draw for every rover of a shared network, "
+        "not ranked per rover",
     )
     require(replay.replay in ("uniform", "ranked"), f"--replay must be 'uniform' or 'ranked', got '{replay.replay}'")
     require(replay.reading in ("paper", "schaul"), f"--reading must be 'paper' or 'schaul', got '{replay.reading}'")

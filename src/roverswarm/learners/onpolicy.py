@@ -36,11 +36,11 @@ from roverswarm.algos.ppo import (
     updates_per_iteration,
 )
 from roverswarm.algos.ppo_networks import policy_networks
-from roverswarm.env.mars import EnvParams, observation_size, reset, step_env
-from roverswarm.env.scenarios import draw_sizes, range_sizes, sized
+from roverswarm.env.mars import EnvParams, observation_size, step_env
+from roverswarm.episodes import exists, reset_all, training_params, training_rewards
 from roverswarm.errors import require, require_finite, require_positive
 from roverswarm.learners.base import Family, Runner, no_replay, seed_keys, start_runner
-from roverswarm.metrics import episode_totals, shaped_rewards, step_stats
+from roverswarm.metrics import episode_totals, step_stats
 from roverswarm.oracle import greedy_plan, oracle_actions
 
 PPO_METRICS = ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction")
@@ -116,11 +116,6 @@ def configure(config, params: EnvParams) -> OnPolicyConfig:
     return OnPolicyConfig(**{f.name: getattr(config, f.name) for f in dataclasses.fields(OnPolicyConfig)})
 
 
-def sizes_of(config: OnPolicyConfig) -> tuple[int, ...] | None:
-    """The swarm sizes each environment draws from per episode (a range scenario); None: one size."""
-    return None if config.mission is not None else range_sizes(config.scenario)
-
-
 def init(config: OnPolicyConfig, params: EnvParams, seed: int) -> Runner:
     """Fresh networks for every seed of base seed ``seed`` (keys derived from (seed, s) as
     off-policy); no replay."""
@@ -139,56 +134,6 @@ def _where_env(done: jax.Array, old, new):
     return jax.tree.map(lambda o, n: jnp.where(done.reshape(-1, *([1] * (n.ndim - 1))), o, n), old, new)
 
 
-def size_cap(config: OnPolicyConfig, episodes: jax.Array) -> jax.Array:
-    """The largest swarm size drawn after ``episodes`` episodes: with --size-curriculum E, it
-    grows linearly from the range's smallest to its largest over the first E episodes."""
-    sizes = sizes_of(config)
-    low, high = sizes[0], sizes[-1]
-    if config.size_curriculum == 0:
-        return jnp.asarray(high)
-    return low + jnp.minimum(episodes / config.size_curriculum, 1.0) * (high - low)
-
-
-def training_params(config: OnPolicyConfig, params: EnvParams) -> EnvParams:
-    """The environment training steps: ``params`` with --fail-rate (one rover may fail in each
-    episode; with --fail-max-rovers only in small swarms, per episode at reset) and
-    --stop-when-complete (an episode ends once every POI is observed)."""
-    if config.fail_rate > 0:
-        params = params.replace(fail_rate=config.fail_rate)
-    return params.replace(terminate_on_complete=params.terminate_on_complete or config.stop_when_complete)
-
-
-def _reset_all(config: OnPolicyConfig, params: EnvParams, key: jax.Array, episodes: jax.Array):
-    """E fresh episodes: of one size, or each of a size drawn from :func:`sizes_of` (up to
-    :func:`size_cap`)."""
-    keys = jax.random.split(key, config.num_envs)  # the layouts of one size as before sizes could mix
-    sizes = sizes_of(config)
-    if sizes is None:
-        return jax.vmap(reset, in_axes=(0, None))(keys, params)[1]
-    counts = draw_sizes(
-        jax.random.fold_in(key, 1), sizes, config.num_envs, size_cap(config, episodes), config.size_draw_power
-    )
-    return jax.vmap(lambda k, n: reset(k, _failures_up_to(config, sized(params, n), n)))(keys, counts)[1]
-
-
-def _failures_up_to(config: OnPolicyConfig, params: EnvParams, rovers) -> EnvParams:
-    """One episode's ``params`` of ``rovers`` rovers: with --fail-max-rovers K, no failures
-    in a swarm of more than K."""
-    if config.fail_max_rovers == 0 or params.fail_rate is None:
-        return params
-    return params.replace(fail_rate=jnp.where(rovers <= config.fail_max_rovers, params.fail_rate, 0.0))
-
-
-def _training_rewards(config: OnPolicyConfig, rewards: jax.Array, info, exists: jax.Array) -> jax.Array:
-    """[E, N] the rewards learned from (:func:`~roverswarm.metrics.shaped_rewards`); with
-    --fail-max-rovers K the unobserved shaping only in swarms of at most K rovers (``exists``
-    [E, N] counts them)."""
-    if config.fail_max_rovers:
-        small = jnp.sum(exists, axis=-1) <= config.fail_max_rovers
-        info = {**info, "unobserved_distance": jnp.where(small, info["unobserved_distance"], 0.0)}
-    return shaped_rewards(rewards, info, config.learner)
-
-
 def collect(
     config: OnPolicyConfig, params: EnvParams, actor, key: jax.Array, episodes: jax.Array | int = 0
 ) -> tuple[Trajectory, dict[str, jax.Array]]:
@@ -205,9 +150,9 @@ def collect(
     observe_all = jax.vmap(nets.observe, in_axes=(0, None))
     params = training_params(config, params)
     k_reset, k_steps = jax.random.split(key)
-    env_state = _reset_all(config, params, k_reset, episodes)
+    env_state = reset_all(config, params, k_reset, episodes)
     obs = observe_all(env_state, params)
-    exists = jnp.ones((config.num_envs, params.num_rovers)) if env_state.rover_mask is None else env_state.rover_mask
+    rovers = exists(env_state)
     plan = jax.vmap(greedy_plan, in_axes=(0, None))(env_state, params) if config.ppo.teacher else None
 
     def body(carry, step_key):
@@ -223,12 +168,12 @@ def collect(
             obs=obs,
             actions=actions,
             log_probs=gaussian_log_prob(actions, mean, log_std),
-            rewards=_training_rewards(config, rewards, info, exists) * live[:, None],
+            rewards=training_rewards(config, rewards, info, rovers) * live[:, None],
             next_obs=next_obs,
             terminated=terminated & live,
             truncated=truncated & live,
             mask=live.astype(jnp.float32),
-            rovers=exists.astype(jnp.float32),
+            rovers=rovers.astype(jnp.float32),
             teacher=None if plan is None else jax.vmap(oracle_actions, in_axes=(0, 0, None))(env_state, plan, params),
         )
         stats = step_stats(rewards, info, live)
