@@ -4,9 +4,11 @@
     python docs/results/any-size/any_size.py --run runs/anysize --evaluate   # evaluate the run as it stands
     python docs/results/any-size/any_size.py --run runs/anysize --stress-only  # only its mission stress
     python docs/results/any-size/any_size.py --specialists runs/specialists  # one network per size, then the figure
+    python docs/results/any-size/any_size.py --run runs/ddpg-anysize --algo ddpg --episodes 60000  # off-policy
 
 Trains ``roverswarm train --preset anysize --seeds 5`` (MAPPO over each rover's nearest
-entities on paper-2..10, a size drawn per episode) into ``--run`` (resumed if it is there; Ctrl-C saves),
+entities on paper-2..10, a size drawn per episode; with ``--algo ddpg`` or ``maddpg`` the
+off-policy family across the same sizes, :data:`OFF_POLICY`) into ``--run`` (resumed if it is there; Ctrl-C saves),
 then evaluates every seed's deterministic policy at N = 2..10 (the sizes it trained on) and at
 12, 16, 20 and 32 (sizes it never saw), 1000 episodes per policy on the same layouts, beside
 random and the oracle. Writes ``any-size.csv`` / ``.md`` (the sweep tables' columns: every seed's
@@ -99,16 +101,38 @@ def anysize(episodes: int, seeds: int, **options) -> TrainConfig:
     return with_options(base, {"anneal_episodes": episodes, **options})
 
 
+OFF_POLICY = {
+    "scenario": "paper-2..10",
+    "network": "nearest",
+    "entity_nearest": 4,
+    "one_batch": True,
+    "size_curriculum": 5000,
+}
+"""``--algo ddpg`` or ``maddpg``: the off-policy family across sizes as in the eleventh probe
+round (README.md): the ``swarm`` preset over the nearest view of 4 per type, one draw of
+transitions for every rover, the largest size drawn growing to 10 over 5,000 episodes."""
+
+
+def off_policy(algo: str, episodes: int, seeds: int, **options) -> TrainConfig:
+    """The ``swarm`` preset's ``algo`` trained across sizes (:data:`OFF_POLICY`), with ``options``;
+    MADDPG's critic sees each rover's 2 nearest others."""
+    critic = {"critic_neighbors": 2} if algo == "maddpg" else {}
+    base = {**OFF_POLICY, **critic, "algo": algo, "episodes": episodes, "seeds": seeds}
+    return with_options(PRESETS["swarm"], {**base, **options})
+
+
 def setting(config: TrainConfig) -> str:
-    """The rows' setting: ``anysize``, with what the run changes of the rover-loss lesson, the
-    size draw and the teacher (and its decay) when it has them."""
+    """The rows' setting: ``anysize`` (or the off-policy learner across sizes), with what the
+    run changes of the rover-loss lesson, the size draw and the teacher (and its decay) when it
+    has them."""
     limit = f" up to {config.fail_max_rovers} rovers" if config.fail_max_rovers else ""
     extra = [f"fail {config.fail_rate:g}{limit}"] * (config.fail_rate > 0)
     extra += [f"shaping {config.learner.unobserved_shaping:g}"] * (config.learner.unobserved_shaping > 0)
     extra += [f"sizes N^-{config.size_draw_power:g}"] * (config.size_draw_power > 0)
     decay = f" to 0 over {config.ppo.teacher_episodes / 1000:g}k" if config.ppo.teacher_episodes else ""
     extra += [f"teacher {config.ppo.teacher:g}{decay}"] * (config.ppo.teacher > 0)
-    return " + ".join(["anysize", *extra])
+    algo = config.learner.algo
+    return " + ".join(["anysize" if algo == "mappo" else f"{algo} across sizes", *extra])
 
 
 def specialists(folder: Path, episodes: int, seeds: int, eval_episodes: int) -> list[dict[str, object]]:
@@ -165,6 +189,12 @@ def main() -> None:
     parser.add_argument("--size-draw-power", type=float, default=0.0, help="train --size-draw-power")
     parser.add_argument("--teacher", type=float, default=0.0, help="train --teacher (rows of their own)")
     parser.add_argument("--teacher-episodes", type=int, default=0, help="train --teacher-episodes (kickstarting)")
+    parser.add_argument(
+        "--algo",
+        choices=["mappo", "ddpg", "maddpg"],
+        default="mappo",
+        help="mappo: the anysize preset; else OFF_POLICY",
+    )
     args = parser.parse_args()
     enable_compilation_cache()
     if args.specialists is not None:
@@ -184,7 +214,11 @@ def main() -> None:
             "teacher",
             "teacher_episodes",
         )
-        config = anysize(args.episodes, args.seeds, **{name: getattr(args, name) for name in options})
+        chosen = {name: getattr(args, name) for name in options}
+        if args.algo == "mappo":
+            config = anysize(args.episodes, args.seeds, **chosen)
+        else:
+            config = off_policy(args.algo, args.episodes, args.seeds, **chosen)
         train(config, out=args.run, resume=(args.run / CONFIG).exists())
     if not args.stress_only:
         rows = table(args.run, args.eval_episodes, setting=setting(read_config(args.run / CONFIG)))
