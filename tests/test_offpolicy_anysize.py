@@ -15,12 +15,13 @@ import pytest
 
 from roverswarm import train
 from roverswarm.algos.learner import AlgoConfig, critic_inputs, init_learner
-from roverswarm.algos.maddpg import update
+from roverswarm.algos.maddpg import presence, update
 from roverswarm.buffers import compact, make_buffer
 from roverswarm.buffers.base import Transition
-from roverswarm.config import SWARM, validate, with_options
+from roverswarm.config import SWARM, TrainConfig, validate, with_options
 from roverswarm.env.entities import ROVER, TOKEN_FEATURES, nearest_width
 from roverswarm.env.mars import ACTION_SIZE, OWN_POSITION
+from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
 from roverswarm.learners import offpolicy
 
@@ -75,6 +76,11 @@ def _critic_reference(obs, actions, rovers, agent, k):
     return np.stack(rows)
 
 
+def test_one_batch_needs_shared_networks():
+    with pytest.raises(UserError, match="^--one-batch needs --share-parameters: one draw"):
+        validate(with_options(TrainConfig(), {"one_batch": True}))
+
+
 def test_the_critic_sees_only_rovers_that_exist():
     """With mixed sizes the critic's neighbours are the nearest rovers that exist, then zeros
     where the swarm has fewer; the same as a NumPy loop."""
@@ -115,6 +121,17 @@ def test_an_update_on_padded_slots_is_the_update_without_them(algo):
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(info_padded["td_loss"][:n], info_alone["td_loss"], rtol=1e-5)
     assert (info_padded["td_loss"][n:] == 0).all()
+
+
+def test_presence_makes_the_mean_over_the_rovers_that_exist():
+    """Of mixed sizes, a weighted mean over every agent's batch [N, B] is the plain mean over
+    the (agent, sample) pairs whose rover exists (a NumPy loop over them)."""
+    rng = np.random.default_rng(3)
+    rovers = np.arange(5)[None, None] < rng.integers(2, 6, size=(5, 16, 1))  # agent i's batch: [N, B, N]
+    values = rng.normal(size=(5, 16))
+    there = [values[i, b] for i in range(5) for b in range(16) if rovers[i, b, i]]
+    weighted = np.mean(np.asarray(presence(jnp.asarray(rovers))) * values)
+    np.testing.assert_allclose(weighted, np.mean(there), rtol=1e-5)
 
 
 def test_one_batch_computes_the_shared_targets_once():

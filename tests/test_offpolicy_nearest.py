@@ -119,8 +119,8 @@ def test_a_nearest_off_policy_run_drives_swarms_it_never_saw(nearest_config, tmp
         ({"critic_neighbors": 0}, "--network nearest with --algo maddpg needs --critic-neighbors C >= 1"),
         ({"network": "entity"}, "^--network entity: --algo maddpg has the flat view's and --network nearest's"),
         ({"stop_when_complete": True}, "^--stop-when-complete: --algo maddpg learns from fixed-length episodes"),
-        ({"one_batch": True, "replay": "ranked"}, "^--one-batch needs --share-parameters and --replay uniform"),
-        ({"one_batch": True, "share_parameters": False}, "needs --share-parameters"),
+        ({"one_batch": True, "replay": "ranked"}, "^--one-batch needs --replay uniform .got 'ranked'."),
+        ({"scenario": "paper-2..4", "importance_weights": True}, "^--importance-weights with --scenario paper-2..4"),
         ({"normalize_obs": True}, "--normalize-obs with --network nearest"),
     ],
 )

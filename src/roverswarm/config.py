@@ -20,7 +20,8 @@ from roverswarm.algos.ppo import PPOConfig
 from roverswarm.buffers.base import ReplayConfig
 from roverswarm.env.mars import EnvParams
 from roverswarm.env.missions import load_mission, parse_mission_text, read_mission_text
-from roverswarm.env.scenarios import get_scenario, padded_scenario, range_sizes
+from roverswarm.env.scenarios import get_scenario, padded_scenario
+from roverswarm.episodes import sizes_of
 from roverswarm.errors import UserError, require
 from roverswarm.errors import require_finite as _finite
 from roverswarm.errors import require_positive as _positive
@@ -38,7 +39,8 @@ class TrainConfig:
 
     scenario: str = DEFAULT_SCENARIO
     """Scenario (see `roverswarm scenarios`): a preset, paper-N, or a range paper-A..B (or list
-    paper-A,B,C) whose every episode draws its swarm size (needs --network entity or nearest)."""
+    paper-A,B,C) whose every episode draws its swarm size (needs --network nearest, or entity with
+    --algo mappo or ippo)."""
     mission: str | None = None
     """Mission file (YAML/JSON) to train on instead of --scenario (give one of them): its
     POIs and traps fixed, rover starts drawn anywhere in the map, fixed-length episodes.
@@ -219,7 +221,8 @@ def validate(config: TrainConfig) -> EnvParams:
         f"--scenario {config.scenario} and --mission: the mission file sets the layout and the number "
         "of rovers; give one of them",
     )
-    if config.mission is None and range_sizes(config.scenario) is not None:
+    sizes = sizes_of(config)
+    if sizes is not None:
         require(
             config.learner.network in ("entity", "nearest"),
             f"--scenario {config.scenario} draws a swarm size per episode: it needs --network nearest, or entity with "
@@ -249,7 +252,6 @@ def validate(config: TrainConfig) -> EnvParams:
         config.fail_max_rovers == 0 or config.fail_rate > 0,
         f"--fail-max-rovers {config.fail_max_rovers} limits --fail-rate to small swarms; give --fail-rate p > 0",
     )
-    sizes = None if config.mission is not None else range_sizes(config.scenario)
     mixed = sizes is not None
     if mixed and config.fail_max_rovers:
         require(

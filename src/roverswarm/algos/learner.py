@@ -65,8 +65,8 @@ class AlgoConfig:
     share_parameters: bool = False
     """One actor and one critic for all rovers, with the rover's one-hot index as an input (not
     over --network nearest, which serves any swarm size) and the critic's view ordered
-    own-first; every update learns from all rovers' batches. Not with --ensemble > 1 or
-    --infer-policies."""
+    own-first; every update learns from all rovers' batches (one batch for all with
+    --one-batch). Not with --ensemble > 1 or --infer-policies."""
     one_batch: bool = False
     """With --share-parameters (uniform replay): each update draws one batch of transitions and
     learns from every rover in it, instead of one batch per rover; the compact replay then

@@ -307,9 +307,11 @@ def _shared_update(
     new_state = _finish(
         config, state, group(actor), group(actor_opt_state), group(critic), group(critic_opt_state), due
     )
+    q_mean = q.mean(-1)
     if present is not None:  # a sample of an agent that does not exist is no reason to draw it again
-        td = td * (present > 0)
-    return new_state, dict(critic_loss=c_loss, actor_loss=a_loss, q_mean=q.mean(-1), td_loss=td)
+        there = present > 0
+        td, q_mean = td * there, jnp.sum(q * there, -1) / jnp.maximum(jnp.sum(there, -1), 1)
+    return new_state, dict(critic_loss=c_loss, actor_loss=a_loss, q_mean=q_mean, td_loss=td)
 
 
 def update(
@@ -322,14 +324,16 @@ def update(
 ):
     """Update every agent once. ``batch`` has a leading group axis [N * K, B, ...]: agent i's
     sample from its sub-policy k's partition at i * K + k (K = 1: agent i's own sample at i);
-    ``weights`` [N * K, B] are optional importance weights of the critic loss; ``recent``
+    ``weights`` [N * K, B] are optional importance weights of the critic loss (a batch of
+    mixed swarm sizes, with ``rovers``, also weighs by :func:`presence`); ``recent``
     [B', ...] (required with --infer-policies) are the recent transitions every agent's
     approximations fit before its critic step; ``key`` (required with --target-noise) draws
     the smoothing noise. Batches hold raw observations and rewards (:func:`prepare` is applied here).
 
     Returns ``(state, info)`` with ``critic_loss``, ``actor_loss`` (mean over sub-policies),
-    ``q_mean`` [N], with --infer-policies ``infer_loss`` [N], and the
-    per-sample TD loss (Q - y)^2 [N * K, B] for prioritised replay.
+    ``q_mean`` [N] (over the samples whose rover exists), with --infer-policies ``infer_loss``
+    [N], and the per-sample TD loss (Q - y)^2 [N * K, B] for prioritised replay (0 where the
+    rover does not exist).
     """
     if config.infer_policies and recent is None:
         raise ValueError("update: --infer-policies needs the recent transitions its approximations fit")

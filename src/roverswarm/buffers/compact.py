@@ -14,7 +14,8 @@ observation is the next transition's observation. The replay therefore stores:
   before the step, the actions, rewards, ``terminated``, the sub-policies of policy ensembles,
   and ``where``: the episode's slot in the episode table and the step's index in it;
 * per episode (:class:`Episodes`, a ring of L slots): the layout (POIs, then traps) and the
-  rovers after the episode's last step.
+  rovers after the episode's last step (and, as the replay is asked below, which slots exist
+  and when rovers fail).
 
 The trainer adds whole episodes, E at a time, time-major (transition ``t * E + e`` of an add is
 step t of episode e), so the next step of the transition in slot j is in slot ``(j + E) mod C``,
@@ -23,7 +24,8 @@ episode's. The transitions still stored come from the newest ``ceil(C / (T * E))
 episodes the table of L slots holds. :func:`expand` rebuilds the
 :class:`~roverswarm.buffers.base.Transition` a learner reads, inside the jitted update and for
 the sampled transitions only, with the environment's own observation function. The flat view
-depends on nothing else (not on time, failures or what was observed), so the batches are the
+depends on nothing else (not on time, failures or what was observed; of padded layouts, also
+the masks), so the batches are the
 stored ones bit for bit (``tests/test_compact_replay.py`` checks this against a replay of
 full observations for every replay kind). Bytes per transition: 151 instead of 1,341 at N = 5,
 298 instead of 5,081 at N = 10 (``benchmarks/replay_memory.py``). A view that also shows which

@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 
 from roverswarm.algos.learner import AlgoConfig, LearnerState, act, init_learner, observation_width, observe_batch
-from roverswarm.algos.maddpg import inference_error, update
+from roverswarm.algos.maddpg import inference_error, presence, update
 from roverswarm.buffers import compact, make_buffer
 from roverswarm.buffers.base import (
     Buffer,
@@ -94,8 +94,14 @@ def _replay(config: OffPolicyConfig, params: EnvParams) -> BufferState:
         config.num_envs,
         observed=view_of(config.learner) is not None,
         padded=sizes_of(config) is not None,
-        failures=config.fail_rate > 0,
+        failures=_keeps_failures(config),
     )
+
+
+def _keeps_failures(config: OffPolicyConfig) -> bool:
+    """Whether the replay keeps each episode's failure steps: rovers fail in training and the
+    view shows it (the flat view does not)."""
+    return config.fail_rate > 0 and view_of(config.learner) is not None
 
 
 def _sizes(learner: AlgoConfig, params: EnvParams) -> tuple[int, int]:
@@ -195,7 +201,7 @@ def collect(
     kept = {} if view is None else {"observed": observed, "final_observed": last.observed}
     if sizes_of(config) is not None:
         kept["masks"] = masks_of(state)
-    if config.fail_rate > 0:
+    if _keeps_failures(config):
         kept["fail_step"] = state.fail_step
     collected = compact.Collected(*steps, compact.layout_of(state), compact.rovers_of(last), policy, **kept)
     return collected, observations, episode_totals(stats)
@@ -218,7 +224,10 @@ def learn(
     Info per agent [N] (the update's losses and Q; with --infer-policies the approximations'
     error before the update) or per sampling group [N * K] (what was sampled: its mean and
     max TD loss, and the fraction drawn from the newest 10% of the replay). A group with an
-    empty partition gets zero weights, so it changes nothing."""
+    empty partition gets zero weights, so it changes nothing. With --one-batch every group
+    learns from the first group's draw, rebuilt once; with mixed sizes the update weighs only
+    the rovers that exist (:func:`~roverswarm.algos.maddpg.presence`), and so does the mean
+    sampled TD loss."""
     expand = partial(
         compact.expand, buffer_state, params=params, num_envs=config.num_envs, view=vector_view(config.learner)
     )
@@ -246,8 +255,12 @@ def learn(
         info["infer_error"] = error
     td_loss = info.pop("td_loss")
     buffer_state = buffer.set_priorities(buffer_state, draw.indices, td_loss)
+    sampled_loss = td_loss.mean(-1)
+    if batch.rovers is not None:  # over the samples whose rover exists
+        there = presence(batch.rovers) > 0
+        sampled_loss = jnp.sum(td_loss * there, -1) / jnp.maximum(jnp.sum(there, -1), 1)
     info.update(
-        sampled_loss=td_loss.mean(-1),
+        sampled_loss=sampled_loss,
         sampled_loss_max=td_loss.max(-1),
         sampled_newest=newest_fraction(buffer_state, draw.indices, 0.1),
     )

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from roverswarm.algos.learner import AlgoConfig
 from roverswarm.buffers.base import ReplayConfig
 from roverswarm.env.mars import EnvParams
-from roverswarm.episodes import EpisodeOptions
+from roverswarm.episodes import EpisodeOptions, sizes_of
 from roverswarm.errors import require, require_finite, require_positive
 
 RUN_OPTIONS = ("update_every", "warmup", "noise_std", "noise_final", "noise_decay_episodes")
@@ -76,9 +76,18 @@ def check(config, params: EnvParams) -> None:
         "standardised by a spread of 0 and saturate on swarms of other sizes; leave it off",
     )
     require(
-        not learner.one_batch or (learner.share_parameters and replay.replay == "uniform"),
-        "--one-batch needs --share-parameters and --replay uniform: one draw for every rover of a shared network, "
-        "not ranked per rover",
+        not learner.one_batch or learner.share_parameters,
+        "--one-batch needs --share-parameters: one draw of transitions for every rover of one shared network",
+    )
+    require(
+        not learner.one_batch or replay.replay == "uniform",
+        f"--one-batch needs --replay uniform (got '{replay.replay}'): the ranked replay draws by each rover's own TD "
+        "loss",
+    )
+    require(
+        not replay.importance_weights or sizes_of(config) is None,
+        f"--importance-weights with --scenario {config.scenario}: the weights are scaled by each batch's largest, "
+        "which a rover absent from a smaller swarm would set; leave them off when sizes mix",
     )
     require(replay.replay in ("uniform", "ranked"), f"--replay must be 'uniform' or 'ranked', got '{replay.replay}'")
     require(replay.reading in ("paper", "schaul"), f"--reading must be 'paper' or 'schaul', got '{replay.reading}'")
