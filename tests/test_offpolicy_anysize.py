@@ -20,7 +20,8 @@ from roverswarm.buffers import compact, make_buffer
 from roverswarm.buffers.base import Transition
 from roverswarm.config import SWARM, TrainConfig, validate, with_options
 from roverswarm.env.entities import ROVER, TOKEN_FEATURES, nearest_width
-from roverswarm.env.mars import ACTION_SIZE, OWN_POSITION
+from roverswarm.env.mars import ACTION_SIZE, OWN_POSITION, masks_of, step_env
+from roverswarm.episodes import reset_all, training_params
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
 from roverswarm.learners import offpolicy
@@ -58,6 +59,50 @@ def test_the_replay_rebuilds_mixed_sizes_and_failures(tiny_config):
     failed = tokens[..., :K, 8][tokens[..., :K, ROVER + 4] == 1]  # the flag of the rover tokens
     assert 0 < failed.mean() < 1  # failed rovers are seen failed, from their failure step on
     assert (np.asarray(batch.obs)[~np.asarray(batch.rovers)] == 0).all()  # a rover that is not there sees nothing
+
+
+def test_every_next_observation_is_the_view_of_the_state_after_the_step(tiny_config):
+    """An independent rollout of mixed sizes with failures (random actions, views straight
+    from the environment, before and after every step): the replay's observations and next
+    observations, the last step's included, are those views."""
+    config = with_options(tiny_config, {**NEAREST, "scenario": "paper-2..4", "fail_rate": 1.0})
+    params = validate(config)
+    program = offpolicy.configure(config, params)
+    view = offpolicy.vector_view(program.learner)
+    envs, steps = program.num_envs, params.max_steps
+    trained = training_params(program, params)
+
+    @jax.jit
+    def rollout(key):
+        start = reset_all(program, trained, key, jnp.asarray(10**6))
+
+        def body(env, k):
+            actions = jax.random.uniform(k, (envs, params.num_rovers, ACTION_SIZE), minval=-1, maxval=1)
+            after = jax.vmap(step_env, in_axes=(0, 0, None))(env, actions, trained)[1]
+            views = [jax.vmap(view, in_axes=(0, None))(s, trained) for s in (env, after)]
+            stored = (compact.rovers_of(env), actions, jnp.zeros(actions.shape[:2]), jnp.zeros(envs, bool))
+            return after, (stored, env.observed, views)
+
+        last, (stored, observed, views) = jax.lax.scan(body, start, jax.random.split(key, steps))
+        episodes = compact.Collected(
+            *stored,
+            compact.layout_of(start),
+            compact.rovers_of(last),
+            observed=observed,
+            final_observed=last.observed,
+            masks=masks_of(start),
+            fail_step=start.fail_step,
+        )
+        return episodes, views
+
+    episodes, (obs, next_obs) = rollout(jax.random.PRNGKey(5))
+    assert len(set(np.asarray(episodes.masks.rovers).sum(-1).tolist())) >= 2
+    buffer = make_buffer(program.buffer, params.num_rovers, 1)
+    state = compact.add(buffer, compact.init(buffer, params, envs, True, True, True), episodes)
+    expand = partial(compact.expand, params=params, num_envs=envs, view=view)
+    batch = jax.jit(expand)(state, jnp.arange(steps * envs))
+    np.testing.assert_allclose(batch.obs, np.asarray(obs).reshape(batch.obs.shape), atol=1e-6)
+    np.testing.assert_allclose(batch.next_obs, np.asarray(next_obs).reshape(batch.obs.shape), atol=1e-6)
 
 
 def _critic_reference(obs, actions, rovers, agent, k):
