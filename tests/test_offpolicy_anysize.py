@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from rollouts import random_episodes  # tests/rollouts.py
 
 from roverswarm import train
 from roverswarm.algos.learner import AlgoConfig, critic_inputs, init_learner
@@ -20,7 +21,7 @@ from roverswarm.buffers import compact, make_buffer
 from roverswarm.buffers.base import Transition
 from roverswarm.config import SWARM, TrainConfig, validate, with_options
 from roverswarm.env.entities import ROVER, TOKEN_FEATURES, nearest_width
-from roverswarm.env.mars import ACTION_SIZE, OWN_POSITION, masks_of, step_env
+from roverswarm.env.mars import ACTION_SIZE, OWN_POSITION
 from roverswarm.episodes import reset_all, training_params
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
@@ -74,26 +75,7 @@ def test_every_next_observation_is_the_view_of_the_state_after_the_step(tiny_con
 
     @jax.jit
     def rollout(key):
-        start = reset_all(program, trained, key, jnp.asarray(10**6))
-
-        def body(env, k):
-            actions = jax.random.uniform(k, (envs, params.num_rovers, ACTION_SIZE), minval=-1, maxval=1)
-            after = jax.vmap(step_env, in_axes=(0, 0, None))(env, actions, trained)[1]
-            views = [jax.vmap(view, in_axes=(0, None))(s, trained) for s in (env, after)]
-            stored = (compact.rovers_of(env), actions, jnp.zeros(actions.shape[:2]), jnp.zeros(envs, bool))
-            return after, (stored, env.observed, views)
-
-        last, (stored, observed, views) = jax.lax.scan(body, start, jax.random.split(key, steps))
-        episodes = compact.Collected(
-            *stored,
-            compact.layout_of(start),
-            compact.rovers_of(last),
-            observed=observed,
-            final_observed=last.observed,
-            masks=masks_of(start),
-            fail_step=start.fail_step,
-        )
-        return episodes, views
+        return random_episodes(reset_all(program, trained, key, jnp.asarray(10**6)), trained, view, key, True)
 
     episodes, (obs, next_obs) = rollout(jax.random.PRNGKey(5))
     assert len(set(np.asarray(episodes.masks.rovers).sum(-1).tolist())) >= 2

@@ -11,13 +11,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from rollouts import random_episodes  # tests/rollouts.py
 
 from roverswarm import train
 from roverswarm.algos.learner import actor_inputs, critic_inputs, init_learner
 from roverswarm.buffers import compact, make_buffer
 from roverswarm.config import SWARM, TrainConfig, validate, with_options
 from roverswarm.env.entities import POI, TOKEN_FEATURES, flat_tokens, nearest_width, observe_nearest
-from roverswarm.env.mars import ACTION_SIZE, reset, step_env
+from roverswarm.env.mars import ACTION_SIZE, reset
 from roverswarm.env.scenarios import get_scenario
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
@@ -56,23 +57,7 @@ def test_the_replay_rebuilds_the_nearest_view_the_actors_saw(nearest_config):
     @jax.jit
     def rollout(key):
         _, start = jax.vmap(reset, in_axes=(0, None))(jax.random.split(key, envs), params)
-
-        def body(env, k):
-            actions = jax.random.uniform(k, (envs, params.num_rovers, ACTION_SIZE), minval=-1, maxval=1)
-            nxt = jax.vmap(step_env, in_axes=(0, 0, None))(env, actions, params)[1]
-            views = [jax.vmap(view, in_axes=(0, None))(s, params) for s in (env, nxt)]
-            stored = (compact.rovers_of(env), actions, jnp.zeros(actions.shape[:2]), jnp.zeros(envs, bool))
-            return nxt, (stored, env.observed, views)
-
-        last, (stored, observed, views) = jax.lax.scan(body, start, jax.random.split(key, params.max_steps))
-        episodes = compact.Collected(
-            *stored,
-            compact.layout_of(start),
-            compact.rovers_of(last),
-            observed=observed,
-            final_observed=last.observed,
-        )
-        return episodes, views
+        return random_episodes(start, params, view, key)
 
     episodes, (obs, next_obs) = rollout(jax.random.PRNGKey(2))
     state = compact.add(buffer, compact.init(buffer, params, envs, observed=True), episodes)
