@@ -88,17 +88,17 @@ def test_every_next_observation_is_the_view_of_the_state_after_the_step(tiny_con
 
 
 def _critic_reference(obs, actions, rovers, agent, k):
-    """NumPy: the agent's view and action, then its k nearest other existing rovers' (ties:
-    lower index), then zeros."""
+    """NumPy: the agent's view and action (zeros if the agent itself is absent), then its k
+    nearest other existing rovers' (ties: lower index), then zeros."""
     rows = []
     for b in range(obs.shape[0]):
         pos = obs[b, :, OWN_POSITION]
         others = [j for j in range(obs.shape[1]) if j != agent and rovers[b, j]]
         others.sort(key=lambda j: (float(np.sum(np.square(pos[j] - pos[agent]))), j))
-        picked = [agent] + others[:k]
-        missing = 1 + k - len(picked)
-        views = [obs[b, j] for j in picked] + [np.zeros(obs.shape[2])] * missing
-        moves = [actions[b, j] for j in picked] + [np.zeros(actions.shape[2])] * missing
+        picked = others[:k] + [None] * (k - len(others[:k]))
+        there = lambda j: j is not None and bool(rovers[b, j])  # noqa: E731
+        views = [obs[b, j] if there(j) else np.zeros(obs.shape[2]) for j in [agent, *picked]]
+        moves = [actions[b, j] if there(j) else np.zeros(actions.shape[2]) for j in [agent, *picked]]
         rows.append(np.concatenate(views + moves))
     return np.stack(rows)
 
@@ -110,13 +110,14 @@ def test_one_batch_needs_shared_networks():
 
 def test_the_critic_sees_only_rovers_that_exist():
     """With mixed sizes the critic's neighbours are the nearest rovers that exist, then zeros
-    where the swarm has fewer; the same as a NumPy loop."""
+    where the swarm has fewer (for an agent whose own rover is absent too: slot 5 exists only in
+    swarms of 6); the same as a NumPy loop."""
     config = AlgoConfig(**{**NEAREST, "critic_neighbors": 3})
     rng = np.random.default_rng(0)
     obs = rng.normal(size=(32, 6, 5)).astype(np.float32)
     actions = rng.uniform(-1, 1, size=(32, 6, ACTION_SIZE)).astype(np.float32)
     rovers = np.arange(6)[None] < rng.integers(2, 7, size=(32, 1))  # swarms of 2 to 6 in 6 slots
-    for agent in (0, 1):
+    for agent in (0, 1, 5):
         got = critic_inputs(config, jnp.asarray(obs), jnp.asarray(actions), jnp.int32(agent), jnp.asarray(rovers))
         np.testing.assert_allclose(got, _critic_reference(obs, actions, rovers, agent, 3), rtol=0, atol=0)
 
@@ -148,6 +149,39 @@ def test_an_update_on_padded_slots_is_the_update_without_them(algo):
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(info_padded["td_loss"][:n], info_alone["td_loss"], rtol=1e-5)
     assert (info_padded["td_loss"][n:] == 0).all()
+
+
+@pytest.mark.parametrize("algo", ["maddpg", "ddpg"])
+def test_what_absent_rovers_carry_changes_no_update_of_mixed_sizes(algo):
+    """Swarms of 2 to 5 in 5 slots, the size drawn per sample: the actions and rewards that the
+    absent slots carry (garbage in a padded replay) change neither the networks an update
+    gives nor a present sample's TD loss, and absent samples hand the replay a TD loss of 0."""
+    config = AlgoConfig(algo=algo, **{**NEAREST, "critic_neighbors": 2}, hidden=(16, 16), twin_critics=True)
+    slots, batch_size, width = 5, 16, 7
+    rng = np.random.default_rng(4)
+    rovers = np.arange(slots)[None, None] < rng.integers(2, slots + 1, size=(slots, batch_size, 1))
+    absent = lambda x, garbage: jnp.where(rovers.reshape(*rovers.shape, *[1] * (x.ndim - 3)), x, garbage)  # noqa: E731
+    normal = lambda *shape: jnp.asarray(rng.normal(size=shape), jnp.float32)  # noqa: E731
+    actions, rewards = normal(slots, batch_size, slots, ACTION_SIZE), normal(slots, batch_size, slots)
+    first = Transition(
+        obs=absent(normal(slots, batch_size, slots, width), 0.0),  # an absent rover sees zeros
+        actions=actions,
+        rewards=rewards,
+        next_obs=absent(normal(slots, batch_size, slots, width), 0.0),
+        terminated=jnp.asarray(rng.random((slots, batch_size)) < 0.2),
+        rovers=jnp.asarray(rovers),
+    )
+    other = first.replace(  # the present slots as in the first batch, the absent ones not
+        actions=absent(actions, normal(*actions.shape)), rewards=absent(rewards, normal(*rewards.shape))
+    )
+    assert not np.array_equal(first.actions, other.actions)
+    state = init_learner(jax.random.PRNGKey(0), config, slots, width)
+    (new_first, info_first), (new_other, info_second) = (update(config, state, b) for b in (first, other))
+    for got, want in zip(jax.tree.leaves(new_first), jax.tree.leaves(new_other)):
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    own = np.asarray(rovers[np.arange(slots), :, np.arange(slots)])  # [N, B]: agent i's rover in its sample
+    np.testing.assert_allclose(info_first["td_loss"], info_second["td_loss"], rtol=1e-5, atol=1e-6)
+    assert (np.asarray(info_first["td_loss"])[~own] == 0).all() and (np.asarray(info_first["td_loss"])[own] > 0).all()
 
 
 def test_presence_makes_the_mean_over_the_rovers_that_exist():
