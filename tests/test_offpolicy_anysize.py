@@ -19,7 +19,7 @@ from roverswarm.algos.learner import AlgoConfig, critic_inputs, init_learner
 from roverswarm.algos.maddpg import presence, update
 from roverswarm.buffers import compact, make_buffer
 from roverswarm.buffers.base import Transition
-from roverswarm.config import SWARM, TrainConfig, validate, with_options
+from roverswarm.config import PRESETS, TrainConfig, validate, with_options
 from roverswarm.env.entities import ROVER, TOKEN_FEATURES, nearest_width
 from roverswarm.env.mars import ACTION_SIZE, OWN_POSITION
 from roverswarm.episodes import reset_all, training_params
@@ -219,11 +219,11 @@ def test_one_batch_computes_the_shared_targets_once():
 
 @pytest.mark.slow
 def test_one_off_policy_run_across_sizes_beats_random_at_every_size(tmp_path):
-    """The swarm preset over the nearest view with one draw for every rover, trained on
-    swarms of 2 and 3 drawn per episode: every seed beats random by a wide margin at 2 and 3
-    and at 5, never trained on."""
-    options = {**NEAREST, "entity_nearest": 2, "one_batch": True, "scenario": "paper-2..3", "episodes": 3000}
-    train(with_options(SWARM, {**options, "seeds": 2}), out=tmp_path, progress=False)
+    """The ``anysize-ddpg`` preset (one draw for every rover) over the nearest 2 of each type,
+    trained on swarms of 2 and 3 drawn per episode: every seed beats random by a wide margin at
+    2 and 3 and at 5, never trained on."""
+    options = {"entity_nearest": 2, "scenario": "paper-2..3", "size_curriculum": 1000, "episodes": 3000, "seeds": 2}
+    train(with_options(PRESETS["anysize-ddpg"], options), out=tmp_path, progress=False)
     rows = evaluate_run(tmp_path, episodes=300, scenario="paper-2,3,5")
-    scores = {(r["scenario"], r["policy"]): r["normalized_score"] for r in rows if r["policy"].startswith("maddpg")}
+    scores = {(r["scenario"], r["policy"]): r["normalized_score"] for r in rows if r["policy"].startswith("ddpg")}
     assert len(scores) == 6 and min(scores.values()) > 0.2, scores

@@ -8,7 +8,7 @@
 
 Trains ``roverswarm train --preset anysize --seeds 5`` (MAPPO over each rover's nearest
 entities on paper-2..10, a size drawn per episode; with ``--algo ddpg`` or ``maddpg`` the
-off-policy family across the same sizes, :data:`OFF_POLICY`) into ``--run`` (resumed if it is there; Ctrl-C saves),
+off-policy family across the same sizes, the ``anysize-ddpg`` preset) into ``--run`` (resumed if there; Ctrl-C saves),
 then evaluates every seed's deterministic policy at N = 2..10 (the sizes it trained on) and at
 12, 16, 20 and 32 (sizes it never saw), 1000 episodes per policy on the same layouts, beside
 random and the oracle. Writes ``any-size.csv`` / ``.md`` (the sweep tables' columns: every seed's
@@ -101,24 +101,13 @@ def anysize(episodes: int, seeds: int, **options) -> TrainConfig:
     return with_options(base, {"anneal_episodes": episodes, **options})
 
 
-OFF_POLICY = {
-    "scenario": "paper-2..10",
-    "network": "nearest",
-    "entity_nearest": 4,
-    "one_batch": True,
-    "size_curriculum": 5000,
-}
-"""``--algo ddpg`` or ``maddpg``: the off-policy family across sizes as in the eleventh probe
-round (README.md): the ``swarm`` preset over the nearest view of 4 per type, one draw of
-transitions for every rover, the largest size drawn growing to 10 over 5,000 episodes."""
-
-
 def off_policy(algo: str, episodes: int, seeds: int, **options) -> TrainConfig:
-    """The ``swarm`` preset's ``algo`` trained across sizes (:data:`OFF_POLICY`), with ``options``;
-    MADDPG's critic sees each rover's 2 nearest others."""
+    """The ``anysize-ddpg`` preset (the off-policy family across sizes, as in the eleventh probe
+    round: README.md) with ``algo`` and ``options``; MADDPG's critic sees each rover's 2 nearest
+    others."""
     critic = {"critic_neighbors": 2} if algo == "maddpg" else {}
-    base = {**OFF_POLICY, **critic, "algo": algo, "episodes": episodes, "seeds": seeds}
-    return with_options(PRESETS["swarm"], {**base, **options})
+    base = {**critic, "algo": algo, "episodes": episodes, "seeds": seeds}
+    return with_options(PRESETS["anysize-ddpg"], {**base, **options})
 
 
 def setting(config: TrainConfig) -> str:
@@ -193,7 +182,7 @@ def main() -> None:
         "--algo",
         choices=["mappo", "ddpg", "maddpg"],
         default="mappo",
-        help="mappo: the anysize preset; else OFF_POLICY",
+        help="mappo: the anysize preset; else the anysize-ddpg preset with this learner",
     )
     args = parser.parse_args()
     enable_compilation_cache()
