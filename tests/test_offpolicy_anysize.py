@@ -179,11 +179,11 @@ def test_what_absent_rovers_carry_changes_no_update_of_mixed_sizes(algo):
     )
     assert not np.array_equal(first.actions, other.actions)
     state = init_learner(jax.random.PRNGKey(0), config, slots, width)
-    (new_first, info_first), (new_other, info_second) = (update(config, state, b) for b in (first, other))
+    (new_first, info_first), (new_other, info_other) = (update(config, state, b) for b in (first, other))
     for got, want in zip(jax.tree.leaves(new_first), jax.tree.leaves(new_other)):
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
     own = np.asarray(rovers[np.arange(slots), :, np.arange(slots)])  # [N, B]: agent i's rover in its sample
-    np.testing.assert_allclose(info_first["td_loss"], info_second["td_loss"], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(info_first["td_loss"], info_other["td_loss"], rtol=1e-5, atol=1e-6)
     assert (np.asarray(info_first["td_loss"])[~own] == 0).all() and (np.asarray(info_first["td_loss"])[own] > 0).all()
 
 

@@ -174,7 +174,7 @@ ANYSIZE_DDPG = dataclasses.replace(
     learner=dataclasses.replace(SWARM.learner, algo="ddpg", network="nearest", entity_nearest=4, one_batch=True),
 )
 """One policy for every swarm size from the off-policy family: the :data:`SWARM` preset's DDPG
-(a local critic Q(o_i, a_i), shared 2 x 64 networks, twin critics) over the nearest view of
+(a local critic Q(o_i, a_i), shared 2 x 128 networks, twin critics) over the nearest view of
 :data:`ANYSIZE` (4 of each type, no rover ids), trained on swarms of 2 to 10 rovers, the
 largest size drawn growing to 10 over the first 5,000 episodes, every rover learning from one
 draw of transitions per update (``--one-batch``); 60,000 episodes, about 117 minutes for 5
