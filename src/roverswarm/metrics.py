@@ -73,6 +73,12 @@ def episode_totals(steps: dict, axis: int = 0) -> dict:
     }
 
 
+def masked_mean(x: jax.Array, mask: jax.Array, axis: int | None = None) -> jax.Array:
+    """The mean of ``x`` over the entries where ``mask`` (0/1 or bool) is set, along ``axis``
+    (all axes by default); 0 where none is."""
+    return jnp.sum(x * mask, axis) / jnp.maximum(jnp.sum(mask, axis), 1.0)
+
+
 def reduce_metric(name: str, x, axis):
     """Aggregate a metric: ``*_max`` metrics by their maximum, the others by their mean."""
     return x.max(axis=axis) if name.endswith("_max") else x.mean(axis=axis)

@@ -100,6 +100,7 @@ from roverswarm.algos.learner import (
 )
 from roverswarm.algos.networks import actor_forward
 from roverswarm.buffers.base import Transition
+from roverswarm.metrics import masked_mean
 
 
 def inference_error(config: AlgoConfig, state: LearnerState, batch: Transition) -> jax.Array:
@@ -310,7 +311,7 @@ def _shared_update(
     q_mean = q.mean(-1)
     if present is not None:  # a sample of an agent that does not exist is no reason to draw it again
         there = present > 0
-        td, q_mean = td * there, jnp.sum(q * there, -1) / jnp.maximum(jnp.sum(there, -1), 1)
+        td, q_mean = td * there, masked_mean(q, there, -1)
     return new_state, dict(critic_loss=c_loss, actor_loss=a_loss, q_mean=q_mean, td_loss=td)
 
 

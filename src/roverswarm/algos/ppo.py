@@ -61,6 +61,7 @@ from roverswarm.algos.learner import AlgoConfig
 from roverswarm.algos.normalize import ObsNorm, init_obs_norm
 from roverswarm.algos.ppo_networks import policy_networks
 from roverswarm.episodes import EpisodeOptions
+from roverswarm.metrics import masked_mean
 
 # ----------------------------------------------------------------------------- configuration
 
@@ -266,10 +267,6 @@ class Batch:
     teacher: jax.Array | None = None  # [B, A] the oracle's actions (--teacher), else None
 
 
-def _masked_mean(x: jax.Array, mask: jax.Array) -> jax.Array:
-    return jnp.sum(x * mask) / jnp.maximum(jnp.sum(mask), 1.0)
-
-
 def ppo_loss(
     config: PPOConfig, log_probs: jax.Array, entropy: jax.Array, values: jax.Array, batch: Batch
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
@@ -286,26 +283,26 @@ def ppo_loss(
     mask = batch.mask
     adv = batch.advantages
     if config.normalize_advantages:
-        mean = _masked_mean(adv, mask)
-        std = jnp.sqrt(_masked_mean(jnp.square(adv - mean), mask))
+        mean = masked_mean(adv, mask)
+        std = jnp.sqrt(masked_mean(jnp.square(adv - mean), mask))
         adv = (adv - mean) / (std + 1e-8)
     log_ratio = log_probs - batch.log_probs
     ratio = jnp.exp(log_ratio)
     surrogate = jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - config.clip_eps, 1 + config.clip_eps) * adv)
-    policy_loss = -_masked_mean(surrogate, mask)
+    policy_loss = -masked_mean(surrogate, mask)
     value_error = jnp.square(values - batch.targets)
     if config.value_clip is not None:
         clipped = batch.values + jnp.clip(values - batch.values, -config.value_clip, config.value_clip)
         value_error = jnp.maximum(value_error, jnp.square(clipped - batch.targets))
-    value_loss = 0.5 * _masked_mean(value_error, mask)
-    mean_entropy = _masked_mean(entropy, mask)
+    value_loss = 0.5 * masked_mean(value_error, mask)
+    mean_entropy = masked_mean(entropy, mask)
     total = policy_loss + config.vf_coef * value_loss - config.ent_coef * mean_entropy
     parts = {
         "policy_loss": policy_loss,
         "value_loss": value_loss,
         "entropy": mean_entropy,
-        "approx_kl": _masked_mean((ratio - 1.0) - log_ratio, mask),
-        "clip_fraction": _masked_mean((jnp.abs(ratio - 1.0) > config.clip_eps).astype(jnp.float32), mask),
+        "approx_kl": masked_mean((ratio - 1.0) - log_ratio, mask),
+        "clip_fraction": masked_mean((jnp.abs(ratio - 1.0) > config.clip_eps).astype(jnp.float32), mask),
     }
     return total, parts
 
@@ -326,7 +323,7 @@ def update_minibatch(config: OnPolicyConfig, state: PPOState, batch: Batch) -> t
         total, parts = ppo_loss(config.ppo, log_probs, entropy, values, batch)
         if batch.teacher is None:
             return total, parts
-        imitation = _masked_mean(jnp.sum(jnp.square(mean - batch.teacher), axis=-1), batch.mask)
+        imitation = masked_mean(jnp.sum(jnp.square(mean - batch.teacher), axis=-1), batch.mask)
         weight = teacher_weight(config, state.actor_opt)
         return total + weight * imitation, {**parts, "imitation_loss": imitation}
 

@@ -49,7 +49,7 @@ from roverswarm.env.mars import ACTION_SIZE, EnvParams, masks_of, observe, step_
 from roverswarm.episodes import exists, reset_all, sizes_of, training_params, training_rewards
 from roverswarm.learners.base import Family, Runner, seed_keys, start_runner
 from roverswarm.learners.offpolicy_config import RUN_OPTIONS, OffPolicyConfig, check, configure, run_replay
-from roverswarm.metrics import episode_totals, reduce_metric, step_stats
+from roverswarm.metrics import episode_totals, masked_mean, reduce_metric, step_stats
 
 LEARNER_METRICS = ("critic_loss", "actor_loss", "q_mean", "sampled_loss", "sampled_loss_max", "sampled_newest")
 """Per-update metrics in ``metrics.csv`` (mean over agents; ``*_max``: max over agents and updates)."""
@@ -257,8 +257,7 @@ def learn(
     buffer_state = buffer.set_priorities(buffer_state, draw.indices, td_loss)
     sampled_loss = td_loss.mean(-1)
     if batch.rovers is not None:  # over the samples whose rover exists
-        there = presence(batch.rovers) > 0
-        sampled_loss = jnp.sum(td_loss * there, -1) / jnp.maximum(jnp.sum(there, -1), 1)
+        sampled_loss = masked_mean(td_loss, presence(batch.rovers) > 0, -1)
     info.update(
         sampled_loss=sampled_loss,
         sampled_loss_max=td_loss.max(-1),
