@@ -210,6 +210,7 @@ def test_a_flat_policy_refuses_another_size(tiny_ppo_config, tmp_path, capsys):
     [
         ({"scenario": "paper-2..4", "network": "mlp"}, "needs --network nearest, or entity with"),
         ({"entity_nearest": 0}, "--network nearest needs --entity-nearest K >= 1"),
+        ({"free_pois_first": True, "network": "entity", "entity_nearest": 0}, "--free-pois-first orders the POIs"),
         ({"fail_rate": 1.5}, r"--fail-rate must be in \[0, 1\]"),
         ({"size_curriculum": 100, "scenario": "paper-3"}, "--size-curriculum needs a range"),
         ({"balance_sizes": True, "size_curriculum": 0, "scenario": "paper-3"}, "--balance-sizes needs a range"),
@@ -251,6 +252,33 @@ def test_the_nearest_view_is_the_k_nearest_of_each_type_sorted_and_padded():
     shuffled = state.replace(poi_pos=state.poi_pos.at[:5].set(state.poi_pos[:5][perm]))
     again = nearest_entities(observe_entities(shuffled, params), params, k)
     np.testing.assert_allclose(again.tokens, near.tokens, atol=1e-6)
+
+
+def test_free_pois_first_shows_the_open_pois_before_the_taken_ones():
+    """--free-pois-first against a plain sort: each rover's real POI tokens ordered by (a nearer
+    rover claims it, distance), cut to k. In a hand-made layout the plain cut hides the one
+    POI nobody claims from the rover whose nearest POIs are taken; the free-first cut shows it
+    first."""
+    params = get_scenario("paper-6").replace(active_rovers=3, active_pois=5, active_traps=6)
+    _, state = reset(jax.random.PRNGKey(9), params)
+    k, pois = 2, slice(5, 11)  # 5 other rover slots, then the 6 POI slots
+    view = observe_entities(state, params)
+    near = nearest_entities(view, params, k, free_first=True)
+    for i in range(3):
+        tokens, mask = np.asarray(view.tokens[i, pois]), np.asarray(view.mask[i, pois])
+        real = sorted(tokens[mask], key=lambda t: (t[CLAIM] <= 0, t[0] ** 2 + t[1] ** 2))[:k]
+        np.testing.assert_allclose(np.asarray(near.tokens[i, k : 2 * k]), real, atol=1e-6)
+    # rovers 0 and 1 both nearest to POI A (rover 1 nearer), rover 2 to B; C is nobody's nearest
+    rovers = jnp.array([[0.0, 0.0], [0.25, 0.0], [0.0, 0.5]] + [[0.0, 0.0]] * 3)
+    layout = jnp.array([[0.3, 0.0], [0.0, 0.6], [-0.9, -0.9]] + [[0.0, 0.0]] * 3)  # A, B, C
+    params = params.replace(active_pois=3)
+    hand = reset(jax.random.PRNGKey(9), params)[1].replace(rover_pos=rovers, poi_pos=layout)
+    every = observe_entities(hand, params)
+    plain, free = (nearest_entities(every, params, k, free_first=f).tokens[0, k : 2 * k, :2] for f in (False, True))
+    far = np.array([-0.9, -0.9])
+    assert not np.any(np.all(np.isclose(np.asarray(plain), far), axis=-1))  # A and B: C out of sight
+    np.testing.assert_allclose(np.asarray(free[0]), far, atol=1e-6)  # C first, then A
+    np.testing.assert_allclose(np.asarray(free[1]), [0.3, 0.0], atol=1e-6)
 
 
 def _padded_state(key: int, active: int = 4):

@@ -122,7 +122,7 @@ def exported(tmp_path_factory):
 def test_the_numpy_observations_equal_the_jax_ones(n):
     """Random states at two swarm sizes, some rovers failed, some POIs observed: the flat view
     in both orders, the entity view, and its cut to 2 and to 4 of each type (4: more slots
-    than other rovers at N = 3, padded and masked)."""
+    than other rovers at N = 3, padded and masked), and to 2 with the open POIs first."""
     params, count = get_scenario(f"paper-{n}"), 8
     states = random_states(params, count, seed=n)
     failing = np.random.default_rng(n).random((count, n)) < 0.4
@@ -132,7 +132,8 @@ def test_the_numpy_observations_equal_the_jax_ones(n):
     def views(states):
         flat = [jax.vmap(observe, in_axes=(0, None))(states, params.replace(nearest_first=f)) for f in (False, True)]
         every = jax.vmap(observe_entities, in_axes=(0, None))(states, params)
-        return flat, [every, nearest_entities(every, params, 2), nearest_entities(every, params, 4)]
+        cuts = [nearest_entities(every, params, 2), nearest_entities(every, params, 4)]
+        return flat, [every, *cuts, nearest_entities(every, params, 2, free_first=True)]
 
     flat, entity = jax.device_get(views(states))
     for e in range(count):
@@ -141,7 +142,9 @@ def test_the_numpy_observations_equal_the_jax_ones(n):
         for nearest_first, expected in zip((False, True), flat, strict=True):
             np.testing.assert_allclose(export_numpy.observe_flat(*args, nearest_first), expected[e], atol=1e-6)
         every = export_numpy.observe_entities(*args, s.observed, failing[e], 0.15, 0.1, 0.1)
-        ours = [every] + [export_numpy.nearest_entities(*every, k, (n - 1, n, n)) for k in (2, 4)]
+        ours = [every] + [
+            export_numpy.nearest_entities(*every, k, (n - 1, n, n), f) for k, f in ((2, 0), (4, 0), (2, 1))
+        ]
         for got, want in zip(ours, entity, strict=True):
             for a, b in zip(got, (want.own[e], want.tokens[e], want.mask[e]), strict=True):
                 np.testing.assert_allclose(a, b, atol=1e-6)

@@ -295,6 +295,11 @@ def validate(config: TrainConfig) -> EnvParams:
         f"--network nearest needs --entity-nearest K >= 1 (how many of each type a rover sees), got {entity.entity_nearest}",
     )
     require(
+        not entity.free_pois_first or (entity.network != "mlp" and entity.entity_nearest >= 1),
+        "--free-pois-first orders the POIs of a view of the K nearest: give --network nearest (or entity) with "
+        f"--entity-nearest K >= 1 (got --network {entity.network} --entity-nearest {entity.entity_nearest})",
+    )
+    require(
         config.log_every % config.num_envs == 0,
         f"--log-every ({config.log_every}) must be a multiple of --num-envs ({config.num_envs})",
     )

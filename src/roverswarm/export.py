@@ -80,19 +80,21 @@ def weights_of(run: Run, seed: int):
 
 def view_of(config: TrainConfig) -> dict:
     """How the exported model sees the swarm (``policy.json``'s ``view``)."""
-    network, k = config.learner.network, config.learner.entity_nearest
+    network, k, free = config.learner.network, config.learner.entity_nearest, config.learner.free_pois_first
     if network == "mlp":
         order = "each group nearest first" if config.nearest_first else "each group in index order"
         return {"kind": "flat", "nearest_first": config.nearest_first, "order": order}
+    pois = " (those with a positive claim lead first)" if free else ""
     return {  # --network entity (every entity, or the K nearest of each type) or nearest (K)
         "kind": "entity",
         "nearest": k,
+        "free_pois_first": free,
         "own_features": list(export_numpy.OWN_FEATURES),
         "token_features": list(export_numpy.TOKEN_FEATURES),
         "order": "other rovers (index order, skipping the rover), then POIs, then traps"
         if k == 0
-        else f"the {k} nearest other rovers, then POIs, then traps, each nearest first; empty tokens (mask False) "
-        "where a type has fewer",
+        else f"the {k} nearest other rovers, then POIs{pois}, then traps, each nearest first; empty tokens "
+        "(mask False) where a type has fewer",
     }
 
 

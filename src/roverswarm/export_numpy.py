@@ -141,19 +141,21 @@ def observe_entities(
     return np.concatenate([vel, pos], axis=-1), tokens, np.ones(tokens.shape[:2], bool)
 
 
-def nearest_entities(own, tokens, mask, k: int, counts: tuple[int, int, int]):
+def nearest_entities(own, tokens, mask, k: int, counts: tuple[int, int, int], free_first: bool = False):
     """An entity view cut to the ``k`` nearest real tokens of each type (other rovers, POIs,
-    traps, whose numbers in ``tokens`` are ``counts``), nearest first within a type, then
-    empty tokens (zeros, masked out) where a type has fewer than ``k``: tokens [N, 3k, 11]."""
+    traps, whose numbers in ``tokens`` are ``counts``), nearest first within a type (with
+    ``free_first``, the POIs whose claim lead is positive before the others), then empty
+    tokens (zeros, masked out) where a type has fewer than ``k``: tokens [N, 3k, 11]."""
     cut_tokens, cut_mask, start = [], [], 0
-    for count in counts:
+    for kind, count in enumerate(counts):
         group, exists = tokens[:, start : start + count], mask[:, start : start + count]
         start += count
         missing = max(k - count, 0)
         group = np.concatenate([group, np.zeros((len(group), missing, group.shape[-1]), np.float32)], axis=1)
         exists = np.concatenate([exists, np.zeros((len(exists), missing), bool)], axis=1)
-        dist = np.where(exists, np.sum(np.square(group[..., :2]), axis=-1), np.inf)
-        order = np.argsort(dist, axis=-1, kind="stable")[:, :k]
+        dist = np.sum(np.square(group[..., :2]), axis=-1)
+        taken = free_first and kind == 1 and group[..., -1] <= 0  # POIs a nearer rover claims (claim lead)
+        order = np.lexsort((dist, np.where(exists, taken, 2)), axis=-1)[:, :k]  # empty slots last
         exists = np.take_along_axis(exists, order, axis=1)
         cut_tokens.append(np.where(exists[..., None], np.take_along_axis(group, order[..., None], axis=1), 0.0))
         cut_mask.append(exists)
@@ -180,5 +182,6 @@ def model_inputs(meta: dict, rover_pos, rover_vel, poi_pos, trap_pos, observed=N
     )
     if view["nearest"]:
         counts = (len(own) - 1, len(np.asarray(poi_pos)), len(np.asarray(trap_pos)))
-        own, tokens, mask = nearest_entities(own, tokens, mask, view["nearest"], counts)
+        free = view.get("free_pois_first", False)  # absent from exports before the option
+        own, tokens, mask = nearest_entities(own, tokens, mask, view["nearest"], counts, free)
     return {"own": own[None], "tokens": tokens[None], "mask": mask[None]}

@@ -105,6 +105,11 @@ class AlgoConfig:
     """--network entity: each rover sees only the nearest this many other rovers, POIs and traps
     (each type); 0 = every entity (keeps the cost of a step constant in the swarm's size).
     --network nearest: how many of each type it sees (>= 1)."""
+    free_pois_first: bool = False
+    """With a view of the K nearest of each type (--network nearest, or entity with
+    --entity-nearest): the POIs that no nearer rover claims as its nearest (claim lead > 0) take
+    the POI slots first, each part nearest first, so that a rover whose nearest POIs are taken
+    sees an open one however far it is (the nearest K alone hide it from N = K + 1 POIs)."""
     trap_shaping: float = 0.0
     """Reward shaping: the learner trains on the environment's reward less this much more per
     trap a rover touches per step (the environment charges 1); what it reports, and every

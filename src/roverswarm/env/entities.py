@@ -157,12 +157,14 @@ def observe_entities(state: EnvState, params: EnvParams) -> EntityView:
     )
 
 
-def nearest_entities(view: EntityView, params: EnvParams, k: int) -> EntityView:
+def nearest_entities(view: EntityView, params: EnvParams, k: int, free_first: bool = False) -> EntityView:
     """The view cut to ``k`` tokens of each type (other rovers, POIs, traps): the nearest ones
     that exist, in that order and nearest first within a type, then empty (masked, zero)
     tokens if a type has fewer: [N, 3k, F] whatever the layout's maxima. A network's cost then
     stops growing with the swarm, and its input has one width for every size; the far
-    entities are out of sight."""
+    entities are out of sight. With ``free_first`` (``--free-pois-first``) the POIs no nearer
+    rover claims (claim lead > 0, :func:`poi_claims`) come before the others, each part nearest
+    first: a rover whose nearest POIs are taken sees the open ones, however far."""
     n, p = params.num_rovers, params.num_pois
     groups = ((0, n - 1), (n - 1, n - 1 + p), (n - 1 + p, token_count(params)))
     tokens, masks = [], []
@@ -171,8 +173,9 @@ def nearest_entities(view: EntityView, params: EnvParams, k: int) -> EntityView:
         missing = max(k - (stop - start), 0)  # a type with fewer than k slots: pad it to k
         group = jnp.concatenate([group, jnp.zeros((*group.shape[:-2], missing, group.shape[-1]), group.dtype)], -2)
         exists = jnp.concatenate([exists, jnp.zeros((*exists.shape[:-1], missing), bool)], -1)
-        dist = jnp.where(exists, jnp.sum(jnp.square(group[..., :2]), axis=-1), jnp.inf)
-        order = jnp.argsort(dist, axis=-1, stable=True)[..., :k]
+        dist = jnp.sum(jnp.square(group[..., :2]), axis=-1)
+        taken = free_first & (start == n - 1) & (group[..., CLAIM] <= 0)  # POIs a nearer rover claims
+        order = jnp.lexsort((dist, jnp.where(exists, taken, 2)), axis=-1)[..., :k]  # empty slots last
         exists = jnp.take_along_axis(exists, order, axis=-1)
         tokens.append(jnp.where(exists[..., None], jnp.take_along_axis(group, order[..., None], axis=-2), 0.0))
         masks.append(exists)
@@ -193,7 +196,8 @@ def nearest_width(k: int) -> int:
     return OWN_FEATURES + 3 * k * (TOKEN_FEATURES + 1)
 
 
-def observe_nearest(state: EnvState, params: EnvParams, k: int) -> EntityView:
+def observe_nearest(state: EnvState, params: EnvParams, k: int, free_first: bool = False) -> EntityView:
     """Every rover's view of its ``k`` nearest other rovers, POIs and traps
-    (:func:`nearest_entities` of :func:`observe_entities`): [N, 3k, F] for any swarm size."""
-    return nearest_entities(observe_entities(state, params), params, k)
+    (:func:`nearest_entities` of :func:`observe_entities`, the open POIs first with
+    ``free_first``): [N, 3k, F] for any swarm size."""
+    return nearest_entities(observe_entities(state, params), params, k, free_first)

@@ -74,7 +74,9 @@ def view_of(learner: AlgoConfig) -> Callable | None:
     view: with --network nearest, the --entity-nearest K nearest of each type
     (:func:`~roverswarm.env.entities.observe_nearest`; any swarm size). None: the flat view.
     One function per config, so programs that close over it are reused."""
-    return partial(observe_nearest, k=learner.entity_nearest) if learner.network == "nearest" else None
+    if learner.network != "nearest":
+        return None
+    return partial(observe_nearest, k=learner.entity_nearest, free_first=learner.free_pois_first)
 
 
 @functools.lru_cache(maxsize=None)
