@@ -211,6 +211,16 @@ def test_a_flat_policy_refuses_another_size(tiny_ppo_config, tmp_path, capsys):
         ({"scenario": "paper-2..4", "network": "mlp"}, "needs --network nearest, or entity with"),
         ({"entity_nearest": 0}, "--network nearest needs --entity-nearest K >= 1"),
         ({"free_pois_first": True, "network": "entity", "entity_nearest": 0}, "--free-pois-first orders the POIs"),
+        (
+            {
+                "free_pois_first": True,
+                "network": "mlp",
+                "scenario": "paper-3",
+                "size_curriculum": 0,
+                "balance_sizes": False,
+            },
+            "--free-pois-first orders the POIs",
+        ),
         ({"fail_rate": 1.5}, r"--fail-rate must be in \[0, 1\]"),
         ({"size_curriculum": 100, "scenario": "paper-3"}, "--size-curriculum needs a range"),
         ({"balance_sizes": True, "size_curriculum": 0, "scenario": "paper-3"}, "--balance-sizes needs a range"),
@@ -279,6 +289,31 @@ def test_free_pois_first_shows_the_open_pois_before_the_taken_ones():
     assert not np.any(np.all(np.isclose(np.asarray(plain), far), axis=-1))  # A and B: C out of sight
     np.testing.assert_allclose(np.asarray(free[0]), far, atol=1e-6)  # C first, then A
     np.testing.assert_allclose(np.asarray(free[1]), [0.3, 0.0], atol=1e-6)
+
+
+def test_free_pois_first_reaches_every_view_a_policy_acts_on():
+    """The option from the config to the view: MAPPO's networks, the off-policy family's view
+    (acting and replay), the export's policy.json and its NumPy runtime all see the open POIs
+    first (a layout where that differs from the plain cut)."""
+    from roverswarm import export, export_numpy
+    from roverswarm.algos.ppo_networks import policy_networks
+    from roverswarm.config import ANYSIZE_DDPG
+    from roverswarm.env.entities import observe_nearest
+    from roverswarm.learners.offpolicy import view_of
+
+    params = get_scenario("paper-6")
+    _, state = reset(jax.random.PRNGKey(3), params)
+    free, plain = (observe_nearest(state, params, 2, free_first=f).tokens for f in (True, False))
+    assert not np.allclose(free, plain)
+    mappo = with_options(ANYSIZE, {"entity_nearest": 2, "free_pois_first": True})
+    ddpg = with_options(ANYSIZE_DDPG, {"entity_nearest": 2, "free_pois_first": True})
+    np.testing.assert_array_equal(policy_networks(mappo.learner, mappo.ppo).observe(state, params).tokens, free)
+    np.testing.assert_array_equal(view_of(ddpg.learner)(state, params).tokens, free)
+    meta = {"view": export.view_of(mappo), "env": {"rover_radius": 0.15, "observe_radius": 0.1, "trap_radius": 0.1}}
+    assert meta["view"]["free_pois_first"] and "positive claim lead" in meta["view"]["order"]
+    s = jax.device_get(state)
+    inputs = export_numpy.model_inputs(meta, s.rover_pos, s.rover_vel, s.poi_pos, s.trap_pos, s.observed)
+    np.testing.assert_allclose(inputs["tokens"][0], free, atol=1e-6)
 
 
 def _padded_state(key: int, active: int = 4):

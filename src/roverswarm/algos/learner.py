@@ -109,7 +109,8 @@ class AlgoConfig:
     """With a view of the K nearest of each type (--network nearest, or entity with
     --entity-nearest): the POIs that no nearer rover claims as its nearest (claim lead > 0) take
     the POI slots first, each part nearest first, so that a rover whose nearest POIs are taken
-    sees an open one however far it is (the nearest K alone hide it from N = K + 1 POIs)."""
+    sees an open one however far it is (the nearest K alone hide it from N = K + 1 POIs). A
+    POI observed earlier counts as any other: the coverage reward charges its distance too."""
     trap_shaping: float = 0.0
     """Reward shaping: the learner trains on the environment's reward less this much more per
     trap a rover touches per step (the environment charges 1); what it reports, and every

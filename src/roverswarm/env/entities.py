@@ -168,13 +168,13 @@ def nearest_entities(view: EntityView, params: EnvParams, k: int, free_first: bo
     n, p = params.num_rovers, params.num_pois
     groups = ((0, n - 1), (n - 1, n - 1 + p), (n - 1 + p, token_count(params)))
     tokens, masks = [], []
-    for start, stop in groups:
+    for kind, (start, stop) in enumerate(groups):  # ROVER, POI, TRAP
         group, exists = view.tokens[..., start:stop, :], view.mask[..., start:stop]
         missing = max(k - (stop - start), 0)  # a type with fewer than k slots: pad it to k
         group = jnp.concatenate([group, jnp.zeros((*group.shape[:-2], missing, group.shape[-1]), group.dtype)], -2)
         exists = jnp.concatenate([exists, jnp.zeros((*exists.shape[:-1], missing), bool)], -1)
         dist = jnp.sum(jnp.square(group[..., :2]), axis=-1)
-        taken = free_first & (start == n - 1) & (group[..., CLAIM] <= 0)  # POIs a nearer rover claims
+        taken = free_first & (kind == POI) & (group[..., CLAIM] <= 0)  # POIs a nearer rover claims
         order = jnp.lexsort((dist, jnp.where(exists, taken, 2)), axis=-1)[..., :k]  # empty slots last
         exists = jnp.take_along_axis(exists, order, axis=-1)
         tokens.append(jnp.where(exists[..., None], jnp.take_along_axis(group, order[..., None], axis=-2), 0.0))
