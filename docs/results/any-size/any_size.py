@@ -187,6 +187,7 @@ def main() -> None:
         help="mappo: the anysize preset; else the anysize-ddpg preset with this learner",
     )
     args = parser.parse_args()
+    args.out.parent.mkdir(parents=True, exist_ok=True)  # before the training and evaluation it ends
     enable_compilation_cache()
     if args.specialists is not None:
         rows = specialists(args.specialists, args.specialist_episodes, args.seeds, args.eval_episodes)
