@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import time
 from functools import partial
 
 import jax
@@ -36,23 +35,12 @@ import jax.numpy as jnp
 from roverswarm.algos.maddpg import update
 from roverswarm.buffers import compact
 from roverswarm.config import PRESETS, validate, with_options
-from roverswarm.experiments.timing import chunk_seconds, fill, paired_ratio
+from roverswarm.experiments.timing import chunk_seconds, fill, median_seconds, paired_ratio
 from roverswarm.jaxcache import enable_compilation_cache
 from roverswarm.learners import offpolicy
 
 TIMED = {"seeds": 1, "episodes": 40_000, "log_every": 200, "warmup": 500}
 """The ``anysize-ddpg`` preset timed: one seed, chunks of 200 episodes, a short warm-up."""
-
-
-def median_ms(function, *args, repeats: int) -> float:
-    """Median milliseconds of ``repeats`` calls of jitted ``function`` (after one to compile)."""
-    jax.block_until_ready(function(*args))
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(function(*args))
-        times.append(time.perf_counter() - start)
-    return 1000 * statistics.median(times)
 
 
 def iteration_parts(repeats: int) -> tuple[dict[str, float], int]:
@@ -76,11 +64,12 @@ def iteration_parts(repeats: int) -> tuple[dict[str, float], int]:
     collect = jax.jit(lambda ln, k: offpolicy.collect(program, params, ln, k, config.noise_std, total // 2))
     learn = jax.jit(lambda ln, b, k: update(program.learner, ln, b, jnp.ones(b.rewards.shape[:2]), key=k))
     parts = {
-        "collect": median_ms(collect, learner, key, repeats=repeats),
-        "rebuild": median_ms(rebuild, replay, indices, repeats=repeats),
-        "update": median_ms(learn, learner, batch, key, repeats=repeats),
+        "collect": lambda: collect(learner, key),
+        "rebuild": lambda: rebuild(replay, indices),
+        "update": lambda: learn(learner, batch, key),
     }
-    return parts, program.num_envs * params.max_steps // program.update_every
+    milliseconds = {name: 1000 * median_seconds(run, repeats) for name, run in parts.items()}
+    return milliseconds, program.num_envs * params.max_steps // program.update_every
 
 
 def main() -> None:

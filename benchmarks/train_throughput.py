@@ -61,23 +61,12 @@ from roverswarm.buffers import compact
 from roverswarm.buffers.base import Transition
 from roverswarm.config import PRESETS, TrainConfig, validate, with_options
 from roverswarm.env.mars import ACTION_SIZE, observation_size
-from roverswarm.experiments.timing import chunk_seconds, fill, paired_ratio
+from roverswarm.experiments.timing import chunk_seconds, fill, median_seconds, paired_ratio
 from roverswarm.jaxcache import enable_compilation_cache
 from roverswarm.learners import FAMILIES, onpolicy
 from roverswarm.learners.offpolicy import run_buffer
 
 REFERENCE_SECONDS_N3 = 90.0
-
-
-def median_seconds(run, repeats: int) -> float:
-    """Median wall seconds of ``repeats`` calls of ``run`` (jitted work), after one warm-up call."""
-    jax.block_until_ready(run())
-    spent = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(run())
-        spent.append(time.perf_counter() - start)
-    return statistics.median(spent)
 
 
 def update_seconds(config: TrainConfig, count: int) -> float:

@@ -59,3 +59,14 @@ def paired_ratio(base: list[float], other: list[float]) -> tuple[float, float, f
     so a ratio is robust to load that drifts over the run, and its spread shows the noise."""
     ratios = [o / b for b, o in zip(base, other)]
     return statistics.median(ratios), min(ratios), max(ratios)
+
+
+def median_seconds(run, repeats: int) -> float:
+    """Median wall seconds of ``repeats`` calls of ``run`` (jitted work), after one warm-up call."""
+    jax.block_until_ready(run())
+    spent = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(run())
+        spent.append(time.perf_counter() - start)
+    return statistics.median(spent)
