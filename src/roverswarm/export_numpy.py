@@ -33,6 +33,9 @@ OWN_FEATURES = ("vx", "vy", "x", "y")
 """The own features of the entity view, in order."""
 TOKEN_FEATURES = ("dx", "dy", "dvx", "dvy", "is_rover", "is_poi", "is_trap", "radius", "flag", "lead", "claim")
 """The features of one entity token, in order."""
+ROVER, POI, TRAP = 0, 1, 2
+"""The token types, in the order of the view and of their one-hot features."""
+CLAIM = TOKEN_FEATURES.index("claim")
 
 
 def _f32(x) -> np.ndarray:
@@ -87,8 +90,8 @@ def poi_claims(dist: np.ndarray, working: np.ndarray) -> np.ndarray:
 
 def _tokens(rel_pos: np.ndarray, rel_vel, kind: int, radius, flag, lead=0.0, claim=0.0) -> np.ndarray:
     """[N, K, 11] tokens of one type from positions [N, K, 2] and velocities (None: they never
-    move) relative to the rover, the type (0 rover, 1 POI, 2 trap), radius, flag, lead and
-    claim lead."""
+    move) relative to the rover, the type (:data:`ROVER`, :data:`POI`, :data:`TRAP`), radius,
+    flag, lead and claim lead."""
     tokens = np.zeros((*rel_pos.shape[:2], len(TOKEN_FEATURES)), np.float32)
     tokens[..., 0:2] = rel_pos
     if rel_vel is not None:
@@ -124,17 +127,17 @@ def observe_entities(
     dist = np.sqrt(np.sum(np.square(pos[:, None] - pois[None]), axis=-1))  # [N, P]
     tokens = np.concatenate(
         [
-            _tokens(pos[others] - pos[:, None], vel[others] - vel[:, None], 0, rover_radius, failed[others]),
+            _tokens(pos[others] - pos[:, None], vel[others] - vel[:, None], ROVER, rover_radius, failed[others]),
             _tokens(
                 pois[None] - pos[:, None],
                 None,
-                1,
+                POI,
                 _f32(observe_radius),
                 observed,
                 poi_leads(dist, ~failed),
                 poi_claims(dist, ~failed),
             ),
-            _tokens(traps[None] - pos[:, None], None, 2, _f32(trap_radius), 0.0),
+            _tokens(traps[None] - pos[:, None], None, TRAP, _f32(trap_radius), 0.0),
         ],
         axis=1,
     )
@@ -154,7 +157,7 @@ def nearest_entities(own, tokens, mask, k: int, counts: tuple[int, int, int], fr
         group = np.concatenate([group, np.zeros((len(group), missing, group.shape[-1]), np.float32)], axis=1)
         exists = np.concatenate([exists, np.zeros((len(exists), missing), bool)], axis=1)
         dist = np.sum(np.square(group[..., :2]), axis=-1)
-        taken = free_first and kind == 1 and group[..., -1] <= 0  # POIs a nearer rover claims (claim lead)
+        taken = free_first and kind == POI and group[..., CLAIM] <= 0  # POIs a nearer rover claims (claim lead)
         order = np.lexsort((dist, np.where(exists, taken, 2)), axis=-1)[:, :k]  # empty slots last
         exists = np.take_along_axis(exists, order, axis=1)
         cut_tokens.append(np.where(exists[..., None], np.take_along_axis(group, order[..., None], axis=1), 0.0))
