@@ -16,7 +16,15 @@ from roverswarm.algos import ppo
 from roverswarm.algos.ppo_networks import swarm_tokens
 from roverswarm.config import ANYSIZE, validate, with_options
 from roverswarm.env import get_scenario, reset
-from roverswarm.env.entities import CLAIM, LEAD, TOKEN_FEATURES, flat_tokens, nearest_entities, observe_entities
+from roverswarm.env.entities import (
+    CLAIM,
+    LEAD,
+    TOKEN_FEATURES,
+    flat_tokens,
+    nearest_entities,
+    observe_entities,
+    observe_nearest,
+)
 from roverswarm.env.mars import NEVER, step_env
 from roverswarm.episodes import reset_all, size_cap, training_params
 from roverswarm.errors import UserError
@@ -210,16 +218,17 @@ def test_a_flat_policy_refuses_another_size(tiny_ppo_config, tmp_path, capsys):
     [
         ({"scenario": "paper-2..4", "network": "mlp"}, "needs --network nearest, or entity with"),
         ({"entity_nearest": 0}, "--network nearest needs --entity-nearest K >= 1"),
-        ({"free_pois_first": True, "network": "entity", "entity_nearest": 0}, "--free-pois-first orders the POIs"),
+        ({"poi_order": "free", "network": "entity", "entity_nearest": 0}, "--poi-order free orders the POIs"),
+        ({"poi_order": "closest"}, "--poi-order must be one of nearest, free, matched, got 'closest'"),
         (
             {
-                "free_pois_first": True,
+                "poi_order": "matched",
                 "network": "mlp",
                 "scenario": "paper-3",
                 "size_curriculum": 0,
                 "balance_sizes": False,
             },
-            "--free-pois-first orders the POIs",
+            "--poi-order matched orders the POIs",
         ),
         ({"fail_rate": 1.5}, r"--fail-rate must be in \[0, 1\]"),
         ({"size_curriculum": 100, "scenario": "paper-3"}, "--size-curriculum needs a range"),
@@ -265,7 +274,7 @@ def test_the_nearest_view_is_the_k_nearest_of_each_type_sorted_and_padded():
 
 
 def test_free_pois_first_shows_the_open_pois_before_the_taken_ones():
-    """--free-pois-first against a plain sort: each rover's real POI tokens ordered by (a nearer
+    """--poi-order free against a plain sort: each rover's real POI tokens ordered by (a nearer
     rover claims it, distance), cut to k. In a hand-made layout the plain cut hides the one
     POI nobody claims from the rover whose nearest POIs are taken; the free-first cut shows it
     first."""
@@ -291,29 +300,75 @@ def test_free_pois_first_shows_the_open_pois_before_the_taken_ones():
     np.testing.assert_allclose(np.asarray(free[1]), [0.3, 0.0], atol=1e-6)
 
 
-def test_free_pois_first_reaches_every_view_a_policy_acts_on():
+def test_matched_pois_first_puts_each_rovers_greedy_poi_first():
+    """--poi-order matched against NumPy: the claim feature is a greedy matching of the working
+    rovers to the POIs (a plain loop over the pairs, nearest first), and that POI takes each
+    rover's first POI slot; a failed rover gets none and its POI goes to a working one."""
+    from roverswarm.export_numpy import poi_matches
+
+    params = get_scenario("paper-5")
+    for key in range(3):
+        _, state = reset(jax.random.PRNGKey(key), params)
+        state = state.replace(fail_step=state.fail_step.at[key].set(0))  # rover `key` has failed
+        dist = np.linalg.norm(np.asarray(state.rover_pos)[:, None] - np.asarray(state.poi_pos)[None], axis=-1)
+        working = np.arange(5) != key
+        expected = poi_matches(dist.astype(np.float32), working)
+        assert expected.sum() == 4 and not expected[key].any()
+        view = observe_entities(state, params, matched=True)
+        np.testing.assert_array_equal(np.asarray(view.tokens[:, 4:9, CLAIM]), expected)
+        near = observe_nearest(state, params, 2, poi_order="matched")
+        for i in np.flatnonzero(working):
+            own_poi = np.asarray(state.poi_pos)[np.argmax(expected[i])] - np.asarray(state.rover_pos)[i]
+            np.testing.assert_allclose(np.asarray(near.tokens[i, 2, :2]), own_poi, atol=1e-6)
+            assert near.tokens[i, 2, CLAIM] == 1 and near.tokens[i, 3, CLAIM] == 0
+
+
+@pytest.mark.parametrize("poi_order", ["free", "matched"])
+def test_the_poi_order_reaches_every_view_a_policy_acts_on(poi_order):
     """The option from the config to the view: MAPPO's networks, the off-policy family's view
-    (acting and replay), the export's policy.json and its NumPy runtime all see the open POIs
-    first (a layout where that differs from the plain cut)."""
+    (acting and replay), the export's policy.json and its NumPy runtime all order the POIs as
+    asked (a layout where that differs from the plain cut)."""
     from roverswarm import export, export_numpy
     from roverswarm.algos.ppo_networks import policy_networks
     from roverswarm.config import ANYSIZE_DDPG
-    from roverswarm.env.entities import observe_nearest
     from roverswarm.learners.offpolicy import view_of
 
     params = get_scenario("paper-6")
     _, state = reset(jax.random.PRNGKey(3), params)
-    free, plain = (observe_nearest(state, params, 2, free_first=f).tokens for f in (True, False))
-    assert not np.allclose(free, plain)
-    mappo = with_options(ANYSIZE, {"entity_nearest": 2, "free_pois_first": True})
-    ddpg = with_options(ANYSIZE_DDPG, {"entity_nearest": 2, "free_pois_first": True})
-    np.testing.assert_array_equal(policy_networks(mappo.learner, mappo.ppo).observe(state, params).tokens, free)
-    np.testing.assert_array_equal(view_of(ddpg.learner)(state, params).tokens, free)
+    ordered, plain = (observe_nearest(state, params, 2, poi_order=o).tokens for o in (poi_order, "nearest"))
+    assert not np.allclose(ordered, plain)
+    mappo = with_options(ANYSIZE, {"entity_nearest": 2, "poi_order": poi_order})
+    ddpg = with_options(ANYSIZE_DDPG, {"entity_nearest": 2, "poi_order": poi_order})
+    np.testing.assert_array_equal(policy_networks(mappo.learner, mappo.ppo).observe(state, params).tokens, ordered)
+    np.testing.assert_array_equal(view_of(ddpg.learner)(state, params).tokens, ordered)
     meta = {"view": export.view_of(mappo), "env": {"rover_radius": 0.15, "observe_radius": 0.1, "trap_radius": 0.1}}
-    assert meta["view"]["free_pois_first"] and "positive claim lead" in meta["view"]["order"]
+    assert meta["view"]["poi_order"] == poi_order and "first" in meta["view"]["order"]
     s = jax.device_get(state)
     inputs = export_numpy.model_inputs(meta, s.rover_pos, s.rover_vel, s.poi_pos, s.trap_pos, s.observed)
-    np.testing.assert_allclose(inputs["tokens"][0], free, atol=1e-6)
+    np.testing.assert_allclose(inputs["tokens"][0], ordered, atol=1e-6)
+
+
+def test_a_config_from_before_the_poi_order_loads_with_its_order():
+    """A run folder's config.json with ``free_pois_first`` (before --poi-order) loads as
+    ``poi_order="free"``, and an export's policy.json with it runs its view the same way."""
+    import json
+
+    from roverswarm import export, export_numpy
+    from roverswarm.config import config_from_json, config_to_json
+
+    free = with_options(ANYSIZE, {"poi_order": "free"})
+    raw = json.loads(config_to_json(free))
+    del raw["learner"]["poi_order"]
+    raw["learner"]["free_pois_first"] = True
+    assert config_from_json(json.dumps(raw)) == free
+    params = get_scenario("paper-6")
+    s = jax.device_get(reset(jax.random.PRNGKey(3), params)[1])
+    env = {"rover_radius": 0.15, "observe_radius": 0.1, "trap_radius": 0.1}
+    new = {"view": export.view_of(free), "env": env}
+    old = {"view": {**new["view"], "free_pois_first": True}, "env": env}
+    del old["view"]["poi_order"]
+    inputs = (export_numpy.model_inputs(m, s.rover_pos, s.rover_vel, s.poi_pos, s.trap_pos) for m in (new, old))
+    np.testing.assert_array_equal(*(i["tokens"] for i in inputs))
 
 
 def _padded_state(key: int, active: int = 4):

@@ -122,7 +122,9 @@ def exported(tmp_path_factory):
 def test_the_numpy_observations_equal_the_jax_ones(n):
     """Random states at two swarm sizes, some rovers failed, some POIs observed: the flat view
     in both orders, the entity view, and its cut to 2 and to 4 of each type (4: more slots
-    than other rovers at N = 3, padded and masked), and to 2 with the open POIs first."""
+    than other rovers at N = 3, padded and masked), and to 2 with the open POIs first; the
+    entity view with the greedy matching as its claim, whole and cut to 2 with the matched POI
+    first."""
     params, count = get_scenario(f"paper-{n}"), 8
     states = random_states(params, count, seed=n)
     failing = np.random.default_rng(n).random((count, n)) < 0.4
@@ -133,7 +135,9 @@ def test_the_numpy_observations_equal_the_jax_ones(n):
         flat = [jax.vmap(observe, in_axes=(0, None))(states, params.replace(nearest_first=f)) for f in (False, True)]
         every = jax.vmap(observe_entities, in_axes=(0, None))(states, params)
         cuts = [nearest_entities(every, params, 2), nearest_entities(every, params, 4)]
-        return flat, [every, *cuts, nearest_entities(every, params, 2, free_first=True)]
+        matched = jax.vmap(observe_entities, in_axes=(0, None, None))(states, params, True)
+        free_first = [nearest_entities(every, params, 2, free_first=True), matched]
+        return flat, [every, *cuts, *free_first, nearest_entities(matched, params, 2, free_first=True)]
 
     flat, entity = jax.device_get(views(states))
     for e in range(count):
@@ -142,9 +146,11 @@ def test_the_numpy_observations_equal_the_jax_ones(n):
         for nearest_first, expected in zip((False, True), flat, strict=True):
             np.testing.assert_allclose(export_numpy.observe_flat(*args, nearest_first), expected[e], atol=1e-6)
         every = export_numpy.observe_entities(*args, s.observed, failing[e], 0.15, 0.1, 0.1)
+        matched = export_numpy.observe_entities(*args, s.observed, failing[e], 0.15, 0.1, 0.1, matched=True)
         ours = [every] + [
             export_numpy.nearest_entities(*every, k, (n - 1, n, n), f) for k, f in ((2, 0), (4, 0), (2, 1))
         ]
+        ours += [matched, export_numpy.nearest_entities(*matched, 2, (n - 1, n, n), True)]
         for got, want in zip(ours, entity, strict=True):
             for a, b in zip(got, (want.own[e], want.tokens[e], want.mask[e]), strict=True):
                 np.testing.assert_allclose(a, b, atol=1e-6)

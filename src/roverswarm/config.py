@@ -18,6 +18,7 @@ import tyro
 from roverswarm.algos.learner import AlgoConfig
 from roverswarm.algos.ppo import PPOConfig
 from roverswarm.buffers.base import ReplayConfig
+from roverswarm.env.entities import POI_ORDERS
 from roverswarm.env.mars import EnvParams
 from roverswarm.env.missions import load_mission, parse_mission_text, read_mission_text
 from roverswarm.env.scenarios import get_scenario, padded_scenario
@@ -295,9 +296,12 @@ def validate(config: TrainConfig) -> EnvParams:
         f"--network nearest needs --entity-nearest K >= 1 (how many of each type a rover sees), got {entity.entity_nearest}",
     )
     require(
-        not entity.free_pois_first or (entity.network != "mlp" and entity.entity_nearest >= 1),
-        "--free-pois-first orders the POIs of a view of the K nearest: give --network nearest (or entity) with "
-        f"--entity-nearest K >= 1 (got --network {entity.network} --entity-nearest {entity.entity_nearest})",
+        entity.poi_order in POI_ORDERS, f"--poi-order must be one of {', '.join(POI_ORDERS)}, got {entity.poi_order!r}"
+    )
+    require(
+        entity.poi_order == "nearest" or (entity.network != "mlp" and entity.entity_nearest >= 1),
+        f"--poi-order {entity.poi_order} orders the POIs of a view of the K nearest: give --network nearest (or "
+        f"entity) with --entity-nearest K >= 1 (got --network {entity.network} --entity-nearest {entity.entity_nearest})",
     )
     require(
         config.log_every % config.num_envs == 0,
@@ -389,10 +393,13 @@ def config_to_json(config: TrainConfig) -> str:
 
 def config_from_json(text: str) -> TrainConfig:
     """A config written by :func:`config_to_json`, also one from before the replay settings
-    moved into ``buffer`` (they were top-level fields then); :class:`UserError` if unreadable."""
+    moved into ``buffer`` (they were top-level fields then) or from before ``--poi-order``
+    (``free_pois_first: true`` is ``poi_order="free"``); :class:`UserError` if unreadable."""
     try:
         raw = json.loads(text)
         learner = raw.pop("learner")
+        if learner.pop("free_pois_first", False):  # runs from before --poi-order
+            learner["poi_order"] = "free"
         learner["hidden"] = tuple(learner["hidden"]) if isinstance(learner["hidden"], list) else learner["hidden"]
         replay = raw.pop("buffer", {})
         for f in dataclasses.fields(ReplayConfig):

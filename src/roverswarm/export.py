@@ -80,15 +80,19 @@ def weights_of(run: Run, seed: int):
 
 def view_of(config: TrainConfig) -> dict:
     """How the exported model sees the swarm (``policy.json``'s ``view``)."""
-    network, k, free = config.learner.network, config.learner.entity_nearest, config.learner.free_pois_first
+    network, k, poi_order = config.learner.network, config.learner.entity_nearest, config.learner.poi_order
     if network == "mlp":
         order = "each group nearest first" if config.nearest_first else "each group in index order"
         return {"kind": "flat", "nearest_first": config.nearest_first, "order": order}
-    pois = " (those with a positive claim lead first)" if free else ""
+    pois = {
+        "nearest": "",
+        "free": " (those with a positive claim lead first)",
+        "matched": " (the rover's POI in the greedy matching first; its claim feature is that matching)",
+    }[poi_order]
     return {  # --network entity (every entity, or the K nearest of each type) or nearest (K)
         "kind": "entity",
         "nearest": k,
-        "free_pois_first": free,
+        "poi_order": poi_order,
         "own_features": list(export_numpy.OWN_FEATURES),
         "token_features": list(export_numpy.TOKEN_FEATURES),
         "order": "other rovers (index order, skipping the rover), then POIs, then traps"

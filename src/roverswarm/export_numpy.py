@@ -88,6 +88,19 @@ def poi_claims(dist: np.ndarray, working: np.ndarray) -> np.ndarray:
     return _lead(dist, np.where(claims, dist, np.inf))
 
 
+def poi_matches(dist: np.ndarray, working: np.ndarray) -> np.ndarray:
+    """[N, P] 1 on the POI a greedy matching gives each working rover (the nearest rover-POI
+    pair first, then the nearest of the rovers and POIs left; the first in row-major order on
+    a tie), else 0: the claim feature of ``poi_order`` "matched"."""
+    matched = np.zeros(dist.shape, np.float32)
+    rover_free, poi_free = working.copy(), np.ones(dist.shape[1], bool)
+    for flat in np.argsort(dist, axis=None, kind="stable"):
+        rover, poi = divmod(int(flat), dist.shape[1])
+        if rover_free[rover] and poi_free[poi]:
+            matched[rover, poi], rover_free[rover], poi_free[poi] = 1.0, False, False
+    return matched
+
+
 def _tokens(rel_pos: np.ndarray, rel_vel, kind: int, radius, flag, lead=0.0, claim=0.0) -> np.ndarray:
     """[N, K, 11] tokens of one type from positions [N, K, 2] and velocities (None: they never
     move) relative to the rover, the type (:data:`ROVER`, :data:`POI`, :data:`TRAP`), radius,
@@ -114,11 +127,13 @@ def observe_entities(
     rover_radius: float = 0.15,
     observe_radius=0.1,
     trap_radius=0.1,
+    matched: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The entity view (own [N, 4], tokens [N, M, 11], mask [N, M] bool). ``observed`` [P]
     bool: POIs observed so far this episode; ``failed`` [N] bool: rovers that have failed
     (default: none of either). ``observe_radius`` is a scalar or one per POI [P],
-    ``trap_radius`` a scalar or one per trap [T]: the environment's, see ``policy.json``."""
+    ``trap_radius`` a scalar or one per trap [T]: the environment's, see ``policy.json``.
+    With ``matched`` the POI tokens' claim feature is :func:`poi_matches`."""
     pos, vel, pois, traps = _f32(rover_pos), _f32(rover_vel), _f32(poi_pos), _f32(trap_pos)
     n, p = len(pos), len(pois)
     observed = np.zeros(p, bool) if observed is None else np.asarray(observed, bool)
@@ -135,7 +150,7 @@ def observe_entities(
                 _f32(observe_radius),
                 observed,
                 poi_leads(dist, ~failed),
-                poi_claims(dist, ~failed),
+                (poi_matches if matched else poi_claims)(dist, ~failed),
             ),
             _tokens(traps[None] - pos[:, None], None, TRAP, _f32(trap_radius), 0.0),
         ],
@@ -147,7 +162,7 @@ def observe_entities(
 def nearest_entities(own, tokens, mask, k: int, counts: tuple[int, int, int], free_first: bool = False):
     """An entity view cut to the ``k`` nearest real tokens of each type (other rovers, POIs,
     traps, whose numbers in ``tokens`` are ``counts``), nearest first within a type (with
-    ``free_first``, the POIs whose claim lead is positive before the others), then empty
+    ``free_first``, the POIs whose claim feature is positive before the others), then empty
     tokens (zeros, masked out) where a type has fewer than ``k``: tokens [N, 3k, 11]."""
     cut_tokens, cut_mask, start = [], [], 0
     for kind, count in enumerate(counts):
@@ -172,6 +187,8 @@ def model_inputs(meta: dict, rover_pos, rover_vel, poi_pos, trap_pos, observed=N
     view, env = meta["view"], meta["env"]
     if view["kind"] == "flat":
         return {"obs": observe_flat(rover_pos, rover_vel, poi_pos, trap_pos, view["nearest_first"])[None]}
+    # exports from before --poi-order hold free_pois_first, or (older still) neither
+    poi_order = view.get("poi_order", "free" if view.get("free_pois_first") else "nearest")
     own, tokens, mask = observe_entities(
         rover_pos,
         rover_vel,
@@ -182,9 +199,9 @@ def model_inputs(meta: dict, rover_pos, rover_vel, poi_pos, trap_pos, observed=N
         env["rover_radius"],
         env["observe_radius"],
         env["trap_radius"],
+        matched=poi_order == "matched",
     )
     if view["nearest"]:
         counts = (len(own) - 1, len(np.asarray(poi_pos)), len(np.asarray(trap_pos)))
-        free = view.get("free_pois_first", False)  # absent from exports before the option
-        own, tokens, mask = nearest_entities(own, tokens, mask, view["nearest"], counts, free)
+        own, tokens, mask = nearest_entities(own, tokens, mask, view["nearest"], counts, poi_order != "nearest")
     return {"own": own[None], "tokens": tokens[None], "mask": mask[None]}

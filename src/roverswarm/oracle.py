@@ -24,6 +24,7 @@ import numpy as np
 from flax import struct
 from scipy.optimize import linear_sum_assignment
 
+from roverswarm.env.entities import greedy_match
 from roverswarm.env.mars import EnvParams, EnvState, masks_of, other_rovers, pairwise_dist, trap_radii
 
 # Clearance kept from a trap's or another rover's edge, and how many steps the controller takes to close the
@@ -68,21 +69,6 @@ def oracle_plan(states: EnvState, params: EnvParams) -> OraclePlan:
         for r, p, n, m in zip(rover, poi, np.asarray(masks.rovers).sum(-1), np.asarray(masks.pois).sum(-1)):
             assigned.append(np.concatenate([assign_pois(r[:n], p[:m]), np.full(len(r) - n, -1, np.int32)]))
     return OraclePlan(poi=jnp.asarray(np.stack(assigned)), home=jnp.asarray(rover))
-
-
-def greedy_match(cost: jax.Array) -> jax.Array:
-    """[N] the column of ``cost`` [N, P] each row is matched to, greedily: the cheapest finite
-    (row, column) pair first, then the cheapest of the rows and columns left, one column per
-    row; -1 for a row left without one (all its finite pairs taken, or none finite). Jittable."""
-    n, p = cost.shape
-    target = jnp.full(n, -1)
-    for _ in range(min(n, p)):
-        row, column = jnp.divmod(jnp.argmin(cost), p)
-        found = jnp.isfinite(cost[row, column])
-        target = jnp.where(found & (jnp.arange(n) == row), column, target)
-        taken = found & ((jnp.arange(n) == row)[:, None] | (jnp.arange(p) == column)[None, :])
-        cost = jnp.where(taken, jnp.inf, cost)
-    return target
 
 
 def greedy_plan(state: EnvState, params: EnvParams) -> OraclePlan:

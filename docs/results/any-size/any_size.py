@@ -118,7 +118,7 @@ def setting(config: TrainConfig) -> str:
     extra = [f"fail {config.fail_rate:g}{limit}"] * (config.fail_rate > 0)
     extra += [f"shaping {config.learner.unobserved_shaping:g}"] * (config.learner.unobserved_shaping > 0)
     extra += [f"sizes N^-{config.size_draw_power:g}"] * (config.size_draw_power > 0)
-    extra += ["free POIs first"] * config.learner.free_pois_first
+    extra += [f"{config.learner.poi_order} POIs first"] * (config.learner.poi_order != "nearest")
     decay = f" to 0 over {config.ppo.teacher_episodes / 1000:g}k" if config.ppo.teacher_episodes else ""
     extra += [f"teacher {config.ppo.teacher:g}{decay}"] * (config.ppo.teacher > 0)
     algo = config.learner.algo
@@ -177,7 +177,9 @@ def main() -> None:
     parser.add_argument("--unobserved-shaping", type=float, default=0.0, help="train --unobserved-shaping")
     parser.add_argument("--fail-max-rovers", type=int, default=0, help="train --fail-max-rovers")
     parser.add_argument("--size-draw-power", type=float, default=0.0, help="train --size-draw-power")
-    parser.add_argument("--free-pois-first", action="store_true", help="train --free-pois-first")
+    parser.add_argument(
+        "--poi-order", default="nearest", choices=("nearest", "free", "matched"), help="train --poi-order"
+    )
     parser.add_argument("--teacher", type=float, default=0.0, help="train --teacher (rows of their own)")
     parser.add_argument("--teacher-episodes", type=int, default=0, help="train --teacher-episodes (kickstarting)")
     parser.add_argument(
@@ -203,7 +205,7 @@ def main() -> None:
             "unobserved_shaping",
             "fail_max_rovers",
             "size_draw_power",
-            "free_pois_first",
+            "poi_order",
             "teacher",
             "teacher_episodes",
         )

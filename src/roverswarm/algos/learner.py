@@ -105,12 +105,16 @@ class AlgoConfig:
     """--network entity: each rover sees only the nearest this many other rovers, POIs and traps
     (each type); 0 = every entity (keeps the cost of a step constant in the swarm's size).
     --network nearest: how many of each type it sees (>= 1)."""
-    free_pois_first: bool = False
+    poi_order: Literal["nearest", "free", "matched"] = "nearest"
     """With a view of the K nearest of each type (--network nearest, or entity with
-    --entity-nearest): the POIs that no nearer rover claims as its nearest (claim lead > 0) take
-    the POI slots first, each part nearest first, so that a rover whose nearest POIs are taken
-    sees an open one however far it is (the nearest K alone hide it from N = K + 1 POIs). A
-    POI observed earlier counts as any other: the coverage reward charges its distance too."""
+    --entity-nearest), the order of the K POI slots. `nearest`: nearest first. `free`: the POIs
+    that no nearer rover claims as its nearest (claim lead > 0) first, each part nearest first,
+    so that a rover whose nearest POIs are taken sees an open one however far it is (the
+    nearest K alone hide it from N = K + 1 POIs). `matched`: the POI that a greedy matching of
+    the working rovers to the POIs (the nearest pair first, recomputed every step) gives the
+    rover first, then the rest nearest first; the POI tokens' claim feature holds that
+    matching (1 on the rover's POI, else 0) instead of the claim lead. A POI observed earlier
+    counts as any other: the coverage reward charges its distance too."""
     trap_shaping: float = 0.0
     """Reward shaping: the learner trains on the environment's reward less this much more per
     trap a rover touches per step (the environment charges 1); what it reports, and every

@@ -15,7 +15,8 @@ Per rover i (pure JAX, jittable, vmappable; leading batch axes come only from vm
   been observed this episode; a trap: 0) and, for a POI, rover i's lead on it (:func:`poi_leads`:
   how much nearer rover i is than every other working rover, negative if another is nearer)
   and its claim lead (:func:`poi_claims`: the same against only the rovers whose nearest POI
-  it is); both 0 for rovers and traps. Other rovers in index order skipping i, then POIs, traps;
+  it is; with ``matched``, instead, 1 on the POI a greedy matching of the rovers to the POIs
+  gives rover i, :func:`poi_matches`); both 0 for rovers and traps. Other rovers in index order skipping i, then POIs, traps;
 * ``mask`` [N, M] bool: the token is an entity that exists. In an unpadded layout every token
   exists; in a padded one the slots past the active counts do not (their features are zeros),
   and the rows of rovers that do not exist are all False.
@@ -47,6 +48,8 @@ ROVER, POI, TRAP = 0, 1, 2
 """Positions of the type one-hot in a token's features (after the first four)."""
 LEAD, CLAIM = 9, 10
 """Positions of the lead and the claim lead in a token's features (the last two)."""
+POI_ORDERS = ("nearest", "free", "matched")
+"""How a view of the K nearest orders its POI slots (``--poi-order``, :func:`observe_nearest`)."""
 
 
 @struct.dataclass
@@ -109,8 +112,34 @@ def poi_claims(dist: jax.Array, working: jax.Array, pois: jax.Array) -> jax.Arra
     return _lead(dist, jnp.where(claims, dist, jnp.inf))
 
 
-def observe_entities(state: EnvState, params: EnvParams) -> EntityView:
-    """The entity view of every rover in ``state`` (see the module docstring for the features)."""
+def greedy_match(cost: jax.Array) -> jax.Array:
+    """[N] the column of ``cost`` [N, P] each row is matched to, greedily: the cheapest finite
+    (row, column) pair first, then the cheapest of the rows and columns left, one column per
+    row; -1 for a row left without one (all its finite pairs taken, or none finite). Jittable."""
+    n, p = cost.shape
+    target = jnp.full(n, -1)
+    for _ in range(min(n, p)):
+        row, column = jnp.divmod(jnp.argmin(cost), p)
+        found = jnp.isfinite(cost[row, column])
+        target = jnp.where(found & (jnp.arange(n) == row), column, target)
+        taken = found & ((jnp.arange(n) == row)[:, None] | (jnp.arange(p) == column)[None, :])
+        cost = jnp.where(taken, jnp.inf, cost)
+    return target
+
+
+def poi_matches(dist: jax.Array, working: jax.Array, pois: jax.Array) -> jax.Array:
+    """[N, P] 1 on the POI :func:`greedy_match` gives each rover when the ``working`` [N] rovers
+    are matched to the POIs that exist (``pois`` [P]) by their distances ``dist`` [N, P], else
+    0 (a rover left without one, failed or not there: 0 everywhere). Recomputed at every step,
+    it tells each rover which POI is its own in a one-to-one split of the work."""
+    target = greedy_match(jnp.where(working[:, None] & pois[None, :], dist, jnp.inf))
+    return jax.nn.one_hot(target, dist.shape[1], dtype=dist.dtype)  # a row of -1 is all zeros
+
+
+def observe_entities(state: EnvState, params: EnvParams, matched: bool = False) -> EntityView:
+    """The entity view of every rover in ``state`` (see the module docstring for the features);
+    with ``matched``, the POI tokens' claim feature holds :func:`poi_matches` instead of the
+    claim lead (``--poi-order matched``)."""
     n, p, t = params.num_rovers, params.num_pois, params.num_traps
     pos, vel = state.rover_pos, state.rover_vel
     others = other_rovers(n)  # [N, N - 1]
@@ -133,7 +162,7 @@ def observe_entities(state: EnvState, params: EnvParams) -> EntityView:
         POI,
         jnp.broadcast_to(observe_radii(params), (n, p)),
         jnp.broadcast_to(state.observed.astype(pos.dtype), (n, p)),
-        (poi_leads(dist, working), poi_claims(dist, working, pois_exist)),
+        (poi_leads(dist, working), (poi_matches if matched else poi_claims)(dist, working, pois_exist)),
     )
     traps = _tokens(
         state.trap_pos[None] - pos[:, None],
@@ -162,9 +191,11 @@ def nearest_entities(view: EntityView, params: EnvParams, k: int, free_first: bo
     that exist, in that order and nearest first within a type, then empty (masked, zero)
     tokens if a type has fewer: [N, 3k, F] whatever the layout's maxima. A network's cost then
     stops growing with the swarm, and its input has one width for every size; the far
-    entities are out of sight. With ``free_first`` (``--free-pois-first``) the POIs no nearer
-    rover claims (claim lead > 0, :func:`poi_claims`) come before the others, each part nearest
-    first: a rover whose nearest POIs are taken sees the open ones, however far."""
+    entities are out of sight. With ``free_first`` the POIs whose claim feature is positive
+    come before the others, each part nearest first: with the claim lead (:func:`poi_claims`,
+    ``--poi-order free``) the POIs no nearer rover claims, so that a rover whose nearest POIs
+    are taken sees the open ones however far; with the matching (:func:`poi_matches`,
+    ``--poi-order matched``) the rover's own POI."""
     n, p = params.num_rovers, params.num_pois
     groups = ((0, n - 1), (n - 1, n - 1 + p), (n - 1 + p, token_count(params)))
     tokens, masks = [], []
@@ -174,7 +205,7 @@ def nearest_entities(view: EntityView, params: EnvParams, k: int, free_first: bo
         group = jnp.concatenate([group, jnp.zeros((*group.shape[:-2], missing, group.shape[-1]), group.dtype)], -2)
         exists = jnp.concatenate([exists, jnp.zeros((*exists.shape[:-1], missing), bool)], -1)
         dist = jnp.sum(jnp.square(group[..., :2]), axis=-1)
-        taken = free_first & (kind == POI) & (group[..., CLAIM] <= 0)  # POIs a nearer rover claims
+        taken = free_first & (kind == POI) & (group[..., CLAIM] <= 0)  # POIs a nearer rover claims, or not matched
         order = jnp.lexsort((dist, jnp.where(exists, taken, 2)), axis=-1)[..., :k]  # empty slots last
         exists = jnp.take_along_axis(exists, order, axis=-1)
         tokens.append(jnp.where(exists[..., None], jnp.take_along_axis(group, order[..., None], axis=-2), 0.0))
@@ -196,8 +227,11 @@ def nearest_width(k: int) -> int:
     return OWN_FEATURES + 3 * k * (TOKEN_FEATURES + 1)
 
 
-def observe_nearest(state: EnvState, params: EnvParams, k: int, free_first: bool = False) -> EntityView:
+def observe_nearest(state: EnvState, params: EnvParams, k: int, poi_order: str = "nearest") -> EntityView:
     """Every rover's view of its ``k`` nearest other rovers, POIs and traps
-    (:func:`nearest_entities` of :func:`observe_entities`, the open POIs first with
-    ``free_first``): [N, 3k, F] for any swarm size."""
-    return nearest_entities(observe_entities(state, params), params, k, free_first)
+    (:func:`nearest_entities` of :func:`observe_entities`): [N, 3k, F] for any swarm size. Its
+    POI slots in ``poi_order`` (:data:`POI_ORDERS`): nearest first; the open POIs first
+    (``free``); or the rover's POI in the greedy matching first (``matched``, which also puts
+    the matching in the claim feature)."""
+    view = observe_entities(state, params, matched=poi_order == "matched")
+    return nearest_entities(view, params, k, free_first=poi_order != "nearest")

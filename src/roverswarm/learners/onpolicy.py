@@ -61,7 +61,7 @@ PPO_USES = (
     "entity_heads",
     "entity_layers",
     "entity_nearest",
-    "free_pois_first",
+    "poi_order",
 )
 """The learner options PPO reads; the other ones are the off-policy family's."""
 
