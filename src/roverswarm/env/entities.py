@@ -16,7 +16,8 @@ Per rover i (pure JAX, jittable, vmappable; leading batch axes come only from vm
   how much nearer rover i is than every other working rover, negative if another is nearer)
   and its claim lead (:func:`poi_claims`: the same against only the rovers whose nearest POI
   it is; with ``matched``, instead, 1 on the POI a greedy matching of the rovers to the POIs
-  gives rover i, :func:`poi_matches`); both 0 for rovers and traps. Other rovers in index order skipping i, then POIs, traps;
+  gives rover i, :func:`poi_matches`); both 0 for rovers and traps. Other rovers in index
+  order skipping i, then POIs, traps;
 * ``mask`` [N, M] bool: the token is an entity that exists. In an unpadded layout every token
   exists; in a padded one the slots past the active counts do not (their features are zeros),
   and the rows of rovers that do not exist are all False.
