@@ -41,6 +41,7 @@ def tiny_anysize():
         "network": "entity",
         "swarm_value": False,
         "entity_nearest": 0,
+        "poi_order": "nearest",
         "entity_dim": 8,
         "entity_heads": 2,
         "entity_layers": 1,

@@ -52,6 +52,7 @@ ENTITY = {
     "network": "entity",
     "swarm_value": False,
     "entity_nearest": 0,
+    "poi_order": "nearest",
     "entity_dim": 8,
     "entity_heads": 2,
     "entity_layers": 2,

@@ -150,19 +150,22 @@ IPPO = dataclasses.replace(MAPPO, learner=dataclasses.replace(MAPPO.learner, alg
 ANYSIZE = dataclasses.replace(
     MAPPO,
     scenario="paper-2..10",
-    episodes=250_000,
+    episodes=80_000,
     size_curriculum=15_000,
-    learner=dataclasses.replace(MAPPO.learner, network="nearest", entity_nearest=4, hidden=(128, 128)),
-    ppo=dataclasses.replace(MAPPO.ppo, balance_sizes=True, anneal_episodes=250_000, swarm_value=True),
+    learner=dataclasses.replace(
+        MAPPO.learner, network="nearest", entity_nearest=4, hidden=(128, 128), poi_order="matched"
+    ),
+    ppo=dataclasses.replace(MAPPO.ppo, balance_sizes=True, anneal_episodes=80_000, swarm_value=True),
 )
 """One policy for every swarm size: MAPPO whose 2 x 128 actor and value see each rover's 4
-nearest other rovers, POIs and traps (nearest first, no rover ids; a POI's token carries the
-rover's lead and claim lead on it), the value also the whole swarm's mean view and size
+nearest other rovers, POIs and traps (no rover ids), the POI that a greedy matching of the
+rovers to the POIs gives the rover first (``--poi-order matched``; a POI's token carries the
+rover's lead on it and that matching), the value also the whole swarm's mean view and size
 (``--swarm-value``), trained on swarms of 2 to 10 rovers, a size drawn per episode, the
 largest size drawn growing from 2 to 10 over the first 15,000 episodes, each episode weighing
-the same in the loss whatever its size (``--balance-sizes``); 250,000 episodes, the learning
+the same in the loss whatever its size (``--balance-sizes``); 80,000 episodes, the learning
 rates decaying linearly to 0 over them (``--anneal-episodes``: give it with ``--episodes``,
-or the rates stop short of 0 or reach it early), about 77 minutes for 5 seeds on 2 cores
+or the rates stop short of 0 or reach it early), 54 minutes for 5 seeds on 2 cores
 (``docs/results/any-size/``). Attention over the entities
 (``--network entity``) is the other encoder; one update cost 13 to 43 times as much here
 (docs/results/any-size/README.md), too slow for a 5-seed run so far."""
@@ -301,7 +304,8 @@ def validate(config: TrainConfig) -> EnvParams:
     require(
         entity.poi_order == "nearest" or (entity.network != "mlp" and entity.entity_nearest >= 1),
         f"--poi-order {entity.poi_order} orders the POIs of a view of the K nearest: give --network nearest (or "
-        f"entity) with --entity-nearest K >= 1 (got --network {entity.network} --entity-nearest {entity.entity_nearest})",
+        "entity) with --entity-nearest K >= 1 "
+        f"(got --network {entity.network} --entity-nearest {entity.entity_nearest})",
     )
     require(
         config.log_every % config.num_envs == 0,

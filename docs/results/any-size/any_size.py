@@ -178,7 +178,10 @@ def main() -> None:
     parser.add_argument("--fail-max-rovers", type=int, default=0, help="train --fail-max-rovers")
     parser.add_argument("--size-draw-power", type=float, default=0.0, help="train --size-draw-power")
     parser.add_argument(
-        "--poi-order", default="nearest", choices=("nearest", "free", "matched"), help="train --poi-order"
+        "--poi-order",
+        default=PRESETS["anysize"].learner.poi_order,
+        choices=("nearest", "free", "matched"),
+        help="train --poi-order (default: the preset's)",
     )
     parser.add_argument("--teacher", type=float, default=0.0, help="train --teacher (rows of their own)")
     parser.add_argument("--teacher-episodes", type=int, default=0, help="train --teacher-episodes (kickstarting)")
