@@ -36,6 +36,7 @@ TOKEN_FEATURES = ("dx", "dy", "dvx", "dvy", "is_rover", "is_poi", "is_trap", "ra
 ROVER, POI, TRAP = 0, 1, 2
 """The token types, in the order of the view and of their one-hot features."""
 CLAIM = TOKEN_FEATURES.index("claim")
+"""Position of the claim feature (the claim lead, or the matching) in a token's features."""
 
 
 def _f32(x) -> np.ndarray:
@@ -172,7 +173,7 @@ def nearest_entities(own, tokens, mask, k: int, counts: tuple[int, int, int], fr
         group = np.concatenate([group, np.zeros((len(group), missing, group.shape[-1]), np.float32)], axis=1)
         exists = np.concatenate([exists, np.zeros((len(exists), missing), bool)], axis=1)
         dist = np.sum(np.square(group[..., :2]), axis=-1)
-        taken = free_first and kind == POI and group[..., CLAIM] <= 0  # POIs a nearer rover claims (claim lead)
+        taken = free_first and kind == POI and group[..., CLAIM] <= 0  # POIs a nearer rover claims, or not matched
         order = np.lexsort((dist, np.where(exists, taken, 2)), axis=-1)[:, :k]  # empty slots last
         exists = np.take_along_axis(exists, order, axis=1)
         cut_tokens.append(np.where(exists[..., None], np.take_along_axis(group, order[..., None], axis=1), 0.0))

@@ -38,6 +38,7 @@ import numpy as np
 
 from roverswarm import train
 from roverswarm.config import PRESETS, TrainConfig, with_options
+from roverswarm.env.entities import POI_ORDERS
 from roverswarm.evaluate import evaluate_run
 from roverswarm.experiments.sweep import figure, markdown, read_table
 from roverswarm.jaxcache import enable_compilation_cache
@@ -180,7 +181,7 @@ def main() -> None:
     parser.add_argument(
         "--poi-order",
         default=PRESETS["anysize"].learner.poi_order,
-        choices=("nearest", "free", "matched"),
+        choices=POI_ORDERS,
         help="train --poi-order (default: the preset's)",
     )
     parser.add_argument("--teacher", type=float, default=0.0, help="train --teacher (rows of their own)")
