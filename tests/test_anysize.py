@@ -303,18 +303,21 @@ def test_free_pois_first_shows_the_open_pois_before_the_taken_ones():
 
 def test_matched_pois_first_puts_each_rovers_greedy_poi_first():
     """--poi-order matched against NumPy: the claim feature is a greedy matching of the working
-    rovers to the POIs (a plain loop over the pairs, nearest first), and that POI takes each
-    rover's first POI slot; a failed rover gets none and its POI goes to a working one."""
+    rovers to the POIs, the open POIs then handed to the rovers whose POI is observed (plain
+    loops over the pairs, nearest first), and that POI takes each rover's first POI slot; a
+    failed rover gets none."""
     from roverswarm.export_numpy import poi_matches
 
     params = get_scenario("paper-5")
-    for key in range(3):
+    for key in range(6):
         _, state = reset(jax.random.PRNGKey(key), params)
-        state = state.replace(fail_step=state.fail_step.at[key].set(0))  # rover `key` has failed
+        observed = np.asarray(jax.random.bernoulli(jax.random.PRNGKey(100 + key), 0.4, (5,)))
+        failed = key % 5
+        state = state.replace(fail_step=state.fail_step.at[failed].set(0), observed=jnp.asarray(observed))
         dist = np.linalg.norm(np.asarray(state.rover_pos)[:, None] - np.asarray(state.poi_pos)[None], axis=-1)
-        working = np.arange(5) != key
-        expected = poi_matches(dist.astype(np.float32), working)
-        assert expected.sum() == 4 and not expected[key].any()
+        working = np.arange(5) != failed
+        expected = poi_matches(dist.astype(np.float32), working, observed)
+        assert expected.sum() == 4 and not expected[failed].any()
         view = observe_entities(state, params, matched=True)
         np.testing.assert_array_equal(np.asarray(view.tokens[:, 4:9, CLAIM]), expected)
         near = observe_nearest(state, params, 2, poi_order="matched")
@@ -322,6 +325,24 @@ def test_matched_pois_first_puts_each_rovers_greedy_poi_first():
             own_poi = np.asarray(state.poi_pos)[np.argmax(expected[i])] - np.asarray(state.rover_pos)[i]
             np.testing.assert_allclose(np.asarray(near.tokens[i, 2, :2]), own_poi, atol=1e-6)
             assert near.tokens[i, 2, CLAIM] == 1 and near.tokens[i, 3, CLAIM] == 0
+
+
+def test_the_matching_hands_a_failed_rovers_poi_to_a_rover_whose_poi_is_observed():
+    """The oracle's rule in the view: rover 0 fails before reaching POI A; rover 1 sits on POI B,
+    observed; rover 2 drives to POI C, not yet observed. The matching gives A to rover 1 (though
+    rover 2 is nearer to A), and C stays rover 2's; with B not yet observed nobody is free and A
+    stays open."""
+    params = get_scenario("paper-3")
+    _, state = reset(jax.random.PRNGKey(0), params)
+    state = state.replace(
+        rover_pos=jnp.array([[-0.9, -0.9], [0.8, 0.8], [0.0, 0.5]]),
+        poi_pos=jnp.array([[-0.2, 0.2], [0.8, 0.8], [0.0, 0.6]]),  # A, B, C
+        fail_step=jnp.array([0, NEVER, NEVER], jnp.int32),
+    )
+    claim = lambda s: np.asarray(observe_entities(s, params, matched=True).tokens[:, 2:5, CLAIM])  # noqa: E731
+    handed = [[0, 0, 0], [1, 0, 0], [0, 0, 1]]  # rover 1 takes A, rover 2 keeps C
+    np.testing.assert_array_equal(claim(state.replace(observed=jnp.array([False, True, False]))), handed)
+    np.testing.assert_array_equal(claim(state.replace(observed=jnp.zeros(3, bool))), np.diag([0.0, 1, 1]))
 
 
 @pytest.mark.parametrize("poi_order", ["free", "matched"])

@@ -89,16 +89,32 @@ def poi_claims(dist: np.ndarray, working: np.ndarray) -> np.ndarray:
     return _lead(dist, np.where(claims, dist, np.inf))
 
 
-def poi_matches(dist: np.ndarray, working: np.ndarray) -> np.ndarray:
-    """[N, P] 1 on the POI a greedy matching gives each working rover (the nearest rover-POI
-    pair first, then the nearest of the rovers and POIs left; the first in row-major order on
-    a tie), else 0: the claim feature of ``poi_order`` "matched"."""
-    matched = np.zeros(dist.shape, np.float32)
-    rover_free, poi_free = working.copy(), np.ones(dist.shape[1], bool)
+def _greedy(dist: np.ndarray, rovers: np.ndarray, pois: np.ndarray) -> dict[int, int]:
+    """{rover: POI} matching the ``rovers`` [N] bool to the ``pois`` [P] bool greedily: the
+    nearest pair first, then the nearest of the rovers and POIs left (the first in row-major
+    order on a tie)."""
+    matched: dict[int, int] = {}
+    rovers, pois = rovers.copy(), pois.copy()
     for flat in np.argsort(dist, axis=None, kind="stable"):
         rover, poi = divmod(int(flat), dist.shape[1])
-        if rover_free[rover] and poi_free[poi]:
-            matched[rover, poi], rover_free[rover], poi_free[poi] = 1.0, False, False
+        if rovers[rover] and pois[poi]:
+            matched[rover], rovers[rover], pois[poi] = poi, False, False
+    return matched
+
+
+def poi_matches(dist: np.ndarray, working: np.ndarray, observed: np.ndarray) -> np.ndarray:
+    """[N, P] 1 on the POI each working rover is given, else 0: the claim feature of
+    ``poi_order`` "matched". A greedy matching of the working rovers to the POIs; then the POIs
+    it leaves open (not ``observed``, given to no rover) go, by a greedy matching again, to the
+    rovers whose POI is observed or who have none."""
+    own = _greedy(dist, working, np.ones(dist.shape[1], bool))
+    pending = {poi for poi in own.values() if not observed[poi]}
+    open_pois = np.array([not observed[poi] and poi not in pending for poi in range(dist.shape[1])])
+    free = np.array([working[r] and (r not in own or observed[own[r]]) for r in range(len(dist))])
+    own.update(_greedy(dist, free, open_pois))
+    matched = np.zeros(dist.shape, np.float32)
+    for rover, poi in own.items():
+        matched[rover, poi] = 1.0
     return matched
 
 
@@ -151,7 +167,7 @@ def observe_entities(
                 _f32(observe_radius),
                 observed,
                 poi_leads(dist, ~failed),
-                (poi_matches if matched else poi_claims)(dist, ~failed),
+                poi_matches(dist, ~failed, observed) if matched else poi_claims(dist, ~failed),
             ),
             _tokens(traps[None] - pos[:, None], None, TRAP, _f32(trap_radius), 0.0),
         ],

@@ -24,7 +24,7 @@ import numpy as np
 from flax import struct
 from scipy.optimize import linear_sum_assignment
 
-from roverswarm.env.entities import greedy_match
+from roverswarm.env.entities import greedy_match, hand_over
 from roverswarm.env.mars import EnvParams, EnvState, masks_of, other_rovers, pairwise_dist, trap_radii
 
 # Clearance kept from a trap's or another rover's edge, and how many steps the controller takes to close the
@@ -88,24 +88,20 @@ def oracle_goals(state: EnvState, plan: OraclePlan, params: EnvParams) -> jax.Ar
     A rover heads for its assigned POI. Once that POI is observed (or if it has none) it is
     free. Free rovers take the *open* POIs: not yet observed, and assigned to no working rover
     (because that rover failed, or because there are more POIs than rovers). They are matched
-    greedily, the closest free rover and open POI first, one rover per POI. A free rover left
+    greedily, the closest free rover and open POI first, one rover per POI
+    (:func:`~roverswarm.env.entities.hand_over`). A free rover left
     without one stays at its assigned POI (or its start). With every rover working and at
     least as many rovers as POIs nothing is ever open, so this is the plain assignment.
     """
-    p = params.num_pois
     working = state.time < state.fail_step  # [N]
-    has_poi = plan.poi >= 0
-    index = jnp.maximum(plan.poi, 0)
-    assigned = jnp.where(has_poi[:, None], state.poi_pos[index], plan.home)
-    claimed = jnp.zeros(p, bool).at[index].max(has_poi & working & ~state.observed[index])
-    open_poi = ~state.observed & ~claimed  # [P]
+    pois = jnp.ones(params.num_pois, bool)
     masks = masks_of(state)
     if masks is not None:  # the empty slots of a padded layout neither work nor need a visit
-        working, open_poi = working & masks.rovers, open_poi & masks.pois
-    free = working & (~has_poi | state.observed[index])  # [N]
+        working, pois = working & masks.rovers, masks.pois
     dist = pairwise_dist(state.rover_pos, state.poi_pos)  # [N, P]
-    target = greedy_match(jnp.where(free[:, None] & open_poi[None, :], dist, jnp.inf))
-    return jnp.where((target >= 0)[:, None], state.poi_pos[jnp.maximum(target, 0)], assigned)
+    target = hand_over(plan.poi, dist, working, pois, state.observed)
+    home = jnp.where((plan.poi >= 0)[:, None], state.poi_pos[jnp.maximum(plan.poi, 0)], plan.home)
+    return jnp.where((target >= 0)[:, None], state.poi_pos[jnp.maximum(target, 0)], home)
 
 
 def _steer_around(

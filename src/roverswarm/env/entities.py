@@ -128,12 +128,33 @@ def greedy_match(cost: jax.Array) -> jax.Array:
     return target
 
 
-def poi_matches(dist: jax.Array, working: jax.Array, pois: jax.Array) -> jax.Array:
-    """[N, P] 1 on the POI :func:`greedy_match` gives each rover when the ``working`` [N] rovers
-    are matched to the POIs that exist (``pois`` [P]) by their distances ``dist`` [N, P], else
-    0 (a rover left without one, failed or not there: 0 everywhere). Recomputed at every step,
-    it tells each rover which POI is its own in a one-to-one split of the work."""
+def hand_over(
+    target: jax.Array, dist: jax.Array, working: jax.Array, pois: jax.Array, observed: jax.Array
+) -> jax.Array:
+    """[N] each rover's POI ``target`` [N] (-1: none) with the *open* POIs handed over, the
+    oracle's rule: a POI that exists (``pois`` [P]), is not yet ``observed`` [P] and is the
+    target of no ``working`` [N] rover (its rover failed, or there are more POIs than rovers)
+    goes to a *free* rover (working, its own POI observed or none), by :func:`greedy_match` on
+    their distances ``dist`` [N, P], one rover per POI. Other rovers keep their target. With
+    every rover working and every POI someone's target nothing is open: ``target`` unchanged."""
+    has = target >= 0
+    index = jnp.maximum(target, 0)
+    claimed = jnp.zeros(dist.shape[1], bool).at[index].max(has & working & ~observed[index])
+    open_poi = pois & ~observed & ~claimed
+    free = working & (~has | observed[index])
+    handed = greedy_match(jnp.where(free[:, None] & open_poi[None, :], dist, jnp.inf))
+    return jnp.where(handed >= 0, handed, target)
+
+
+def poi_matches(dist: jax.Array, working: jax.Array, pois: jax.Array, observed: jax.Array) -> jax.Array:
+    """[N, P] 1 on the POI each rover is given, else 0 (a rover left without one, failed or not
+    there: 0 everywhere): :func:`greedy_match` of the ``working`` [N] rovers to the POIs that
+    exist (``pois`` [P]) by their distances ``dist`` [N, P], then the POIs that leaves open
+    (not ``observed`` [P], no working rover's) :func:`hand_over` to the rovers whose POI is
+    observed. Recomputed at every step, it tells each rover which POI is its own in a
+    one-to-one split of the work that still needs doing, and who takes over a failed rover's."""
     target = greedy_match(jnp.where(working[:, None] & pois[None, :], dist, jnp.inf))
+    target = hand_over(target, dist, working, pois, observed)
     return jax.nn.one_hot(target, dist.shape[1], dtype=dist.dtype)  # a row of -1 is all zeros
 
 
@@ -163,7 +184,12 @@ def observe_entities(state: EnvState, params: EnvParams, matched: bool = False) 
         POI,
         jnp.broadcast_to(observe_radii(params), (n, p)),
         jnp.broadcast_to(state.observed.astype(pos.dtype), (n, p)),
-        (poi_leads(dist, working), (poi_matches if matched else poi_claims)(dist, working, pois_exist)),
+        (
+            poi_leads(dist, working),
+            poi_matches(dist, working, pois_exist, state.observed)
+            if matched
+            else poi_claims(dist, working, pois_exist),
+        ),
     )
     traps = _tokens(
         state.trap_pos[None] - pos[:, None],
