@@ -370,6 +370,17 @@ def test_the_poi_order_reaches_every_view_a_policy_acts_on(poi_order):
     np.testing.assert_allclose(inputs["tokens"][0], ordered, atol=1e-6)
 
 
+def test_the_command_line_offers_exactly_the_poi_orders_the_view_knows():
+    """--poi-order's choices (AlgoConfig's Literal, which tyro shows) are env.entities.POI_ORDERS,
+    the orders observe_nearest implements: adding one to either alone fails here."""
+    import typing
+
+    from roverswarm.algos.learner import AlgoConfig
+    from roverswarm.env.entities import POI_ORDERS
+
+    assert typing.get_args(typing.get_type_hints(AlgoConfig)["poi_order"]) == POI_ORDERS
+
+
 def test_a_config_from_before_the_poi_order_loads_with_its_order():
     """A run folder's config.json with ``free_pois_first`` (before --poi-order) loads as
     ``poi_order="free"``, and an export's policy.json with it runs its view the same way."""
