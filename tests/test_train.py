@@ -453,21 +453,28 @@ def test_a_truncated_checkpoint_is_one_line_and_exit_2(unbroken, tmp_path, capsy
 
 
 @pytest.mark.parametrize("algo", ["maddpg", "mappo"])
-def test_trap_shaping_trains_on_a_heavier_trap_penalty_and_reports_the_environments_reward(
-    algo, tiny_config, tiny_ppo_config
+@pytest.mark.parametrize(
+    "shaping, penalty, contacts, big",
+    [
+        ("trap_shaping", "trap_penalty", "trap_contacts", {"trap_radius": 0.4}),
+        ("collision_shaping", "collision_penalty", "collisions", {"rover_radius": 0.5, "contact_force": 0.0}),
+    ],
+)
+def test_contact_shaping_trains_on_a_heavier_penalty_and_reports_the_environments_reward(
+    algo, shaping, penalty, contacts, big, tiny_config, tiny_ppo_config
 ):
-    """--trap-shaping k: the rewards the learner keeps are those of the same environment with
-    the trap penalty 1 + k (the environment's own reward formula), step by step; the episode
-    rewards it reports are those of the unshaped environment."""
+    """--trap-shaping k (--collision-shaping k): the rewards the learner keeps are those of the
+    same environment with the trap (collision) penalty 1 + k (the environment's own reward
+    formula), step by step; the episode rewards it reports are those of the unshaped environment."""
     import roverswarm.learners.onpolicy as onpolicy
     from roverswarm.algos import ppo
     from roverswarm.algos.learner import init_learner
     from roverswarm.env import observation_size
 
     config = tiny_config if algo == "maddpg" else tiny_ppo_config
-    shaped = with_options(config, {"trap_shaping": 4.0})
-    params = validate(config).replace(trap_radius=0.4)  # big craters: many contacts
-    heavy = params.replace(trap_penalty=5.0)
+    shaped = with_options(config, {shaping: 4.0})
+    params = validate(config).replace(**big)  # big craters, or big rovers not pushed apart: many contacts
+    heavy = params.replace(**{penalty: 5.0})
     sizes = (params.num_rovers, observation_size(params))
     if algo == "maddpg":
         learner = init_learner(jax.random.PRNGKey(0), config.learner, *sizes)
@@ -477,13 +484,14 @@ def test_trap_shaping_trains_on_a_heavier_trap_penalty_and_reports_the_environme
         run = lambda c, p: onpolicy.collect(c, p, actor, jax.random.PRNGKey(1))  # noqa: E731
     kept = lambda out: out[0].rewards  # noqa: E731  (the replay's or the trajectory's)
     plain, on_heavy, trained = run(config, params), run(config, heavy), run(shaped, params)
-    assert float(plain[-1]["trap_contacts"].sum()) > 10
+    assert float(plain[-1][contacts].sum()) > 10
     np.testing.assert_allclose(kept(trained), kept(on_heavy), rtol=1e-6, atol=1e-5)
     assert not np.allclose(kept(trained), kept(plain))
-    for name in ("episode_reward", "agent_rewards", "trap_contacts"):
+    for name in ("episode_reward", "agent_rewards", contacts):
         np.testing.assert_allclose(trained[-1][name], plain[-1][name], rtol=1e-6)
-    with pytest.raises(UserError, match="--trap-shaping must be a finite number >= 0, got -1"):
-        validate(with_options(config, {"trap_shaping": -1.0}))
+    flag = "--" + shaping.replace("_", "-")
+    with pytest.raises(UserError, match=f"{flag} must be a finite number >= 0, got -1"):
+        validate(with_options(config, {shaping: -1.0}))
 
 
 @pytest.mark.parametrize("algo", ["maddpg", "mappo"])

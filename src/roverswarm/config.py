@@ -318,9 +318,8 @@ def validate(config: TrainConfig) -> EnvParams:
     for name in ("actor_lr", "critic_lr", "grad_clip"):
         value = getattr(learner, name)
         require(value > 0, f"--{name.replace('_', '-')} must be positive, got {value}")
-    _finite(learner.trap_shaping, 0, "trap-shaping")
-    _finite(learner.observe_bonus, 0, "observe-bonus")
-    _finite(learner.unobserved_shaping, 0, "unobserved-shaping")
+    for name in ("trap_shaping", "collision_shaping", "observe_bonus", "unobserved_shaping"):
+        _finite(getattr(learner, name), 0, name.replace("_", "-"))
     require(0 <= learner.gamma <= 1, f"--gamma must be in [0, 1], got {learner.gamma}")
     learner_family(learner.algo).check(config, params)
     return params

@@ -37,7 +37,8 @@ def contact_counts(info: dict[str, jax.Array]) -> dict[str, jax.Array]:
 
 def shaped_rewards(rewards: jax.Array, info: dict[str, jax.Array], learner: AlgoConfig) -> jax.Array:
     """The rewards a learner trains on: the environment's ``rewards`` [..., N] less
-    ``learner.trap_shaping`` more per trap each rover touches (``--trap-shaping``), plus
+    ``learner.trap_shaping`` more per trap each rover touches (``--trap-shaping``) and
+    ``learner.collision_shaping`` more per other rover it touches (``--collision-shaping``), plus
     ``learner.observe_bonus`` for every rover per POI first observed at the step
     (``--observe-bonus``), less ``learner.unobserved_shaping`` times the distance the swarm's
     working rovers still have to the POIs not yet observed, for every rover
@@ -45,7 +46,8 @@ def shaped_rewards(rewards: jax.Array, info: dict[str, jax.Array], learner: Algo
     swarm = (
         learner.observe_bonus * info["pois_first_observed"] - learner.unobserved_shaping * info["unobserved_distance"]
     )
-    return rewards - learner.trap_shaping * info["trap_contacts"] + swarm[..., None]
+    contacts = learner.trap_shaping * info["trap_contacts"] + learner.collision_shaping * info["collisions"]
+    return rewards - contacts + swarm[..., None]
 
 
 def step_stats(rewards: jax.Array, info: dict[str, jax.Array], live: jax.Array | None = None) -> dict[str, jax.Array]:

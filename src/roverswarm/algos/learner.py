@@ -119,6 +119,11 @@ class AlgoConfig:
     """Reward shaping: the learner trains on the environment's reward less this much more per
     trap a rover touches per step (the environment charges 1); what it reports, and every
     evaluation, stays the environment's reward. MADDPG, DDPG, MAPPO and IPPO."""
+    collision_shaping: float = 0.0
+    """Reward shaping: as --trap-shaping, for the other rovers: the learner trains on the
+    environment's reward less this much more per other rover a rover touches per step (the
+    environment charges 1); reports and evaluations stay the environment's reward. MADDPG,
+    DDPG, MAPPO and IPPO."""
     observe_bonus: float = 0.0
     """Reward shaping: the learner trains on the environment's reward plus this much for every
     rover each time a POI is observed for the first time in the episode (a reason to visit

@@ -54,6 +54,7 @@ PPO_USES = (
     "grad_clip",
     "hidden",
     "trap_shaping",
+    "collision_shaping",
     "observe_bonus",
     "unobserved_shaping",
     "network",
