@@ -91,7 +91,8 @@ def oracle_goals(state: EnvState, plan: OraclePlan, params: EnvParams) -> jax.Ar
     greedily, the closest free rover and open POI first, one rover per POI
     (:func:`~roverswarm.env.entities.hand_over`). A free rover left
     without one stays at its assigned POI (or its start). With every rover working and at
-    least as many rovers as POIs nothing is ever open, so this is the plain assignment.
+    least as many rovers as POIs nothing is ever open, so this is the plain assignment. The
+    empty rover slots of a padded layout neither work nor claim a POI.
     """
     working = state.time < state.fail_step  # [N]
     pois = jnp.ones(params.num_pois, bool)

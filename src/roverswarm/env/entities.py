@@ -15,8 +15,8 @@ Per rover i (pure JAX, jittable, vmappable; leading batch axes come only from vm
   been observed this episode; a trap: 0) and, for a POI, rover i's lead on it (:func:`poi_leads`:
   how much nearer rover i is than every other working rover, negative if another is nearer)
   and its claim lead (:func:`poi_claims`: the same against only the rovers whose nearest POI
-  it is; with ``matched``, instead, 1 on the POI a greedy matching of the rovers to the POIs
-  gives rover i, :func:`poi_matches`); both 0 for rovers and traps. Other rovers in index
+  it is; with ``matched``, instead, 1 on the POI a greedy matching of the rovers to the POIs,
+  the open POIs handed over, gives rover i, :func:`poi_matches`); both 0 for rovers and traps. Other rovers in index
   order skipping i, then POIs, traps;
 * ``mask`` [N, M] bool: the token is an entity that exists. In an unpadded layout every token
   exists; in a padded one the slots past the active counts do not (their features are zeros),
@@ -258,7 +258,7 @@ def observe_nearest(state: EnvState, params: EnvParams, k: int, poi_order: str =
     """Every rover's view of its ``k`` nearest other rovers, POIs and traps
     (:func:`nearest_entities` of :func:`observe_entities`): [N, 3k, F] for any swarm size. Its
     POI slots in ``poi_order`` (:data:`POI_ORDERS`): nearest first; the open POIs first
-    (``free``); or the rover's POI in the greedy matching first (``matched``, which also puts
-    the matching in the claim feature)."""
+    (``free``); or the rover's POI in the greedy matching, the open POIs handed over, first
+    (``matched``, :func:`poi_matches`, which also puts the matching in the claim feature)."""
     view = observe_entities(state, params, matched=poi_order == "matched")
     return nearest_entities(view, params, k, free_first=poi_order != "nearest")
