@@ -21,11 +21,13 @@ from roverswarm.env.entities import (
     LEAD,
     TOKEN_FEATURES,
     flat_tokens,
+    greedy_match,
     nearest_entities,
     observe_entities,
     observe_nearest,
+    uncross,
 )
-from roverswarm.env.mars import NEVER, step_env
+from roverswarm.env.mars import NEVER, pairwise_dist, step_env
 from roverswarm.episodes import reset_all, size_cap, training_params
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
@@ -325,6 +327,23 @@ def test_matched_pois_first_puts_each_rovers_greedy_poi_first():
             own_poi = np.asarray(state.poi_pos)[np.argmax(expected[i])] - np.asarray(state.rover_pos)[i]
             np.testing.assert_allclose(np.asarray(near.tokens[i, 2, :2]), own_poi, atol=1e-6)
             assert near.tokens[i, 2, CLAIM] == 1 and near.tokens[i, 3, CLAIM] == 0
+
+
+def test_the_matching_swaps_routes_that_cross():
+    """Rover 0 at the left end, POI A, rover 1, POI B along a line: the greedy matching takes the
+    nearest pair (rover 1 and A) first and sends rover 0 past it to B (2.2 in all); the view's
+    matching swaps them (rover 0 to A, rover 1 to B: 1.3), and :func:`uncross` leaves a matching
+    without crossings as it is."""
+    params = get_scenario("paper-2")
+    _, state = reset(jax.random.PRNGKey(0), params)
+    state = state.replace(
+        rover_pos=jnp.array([[-0.9, 0.0], [0.05, 0.0]]), poi_pos=jnp.array([[-0.4, 0.05], [0.85, 0.05]])
+    )
+    dist = pairwise_dist(state.rover_pos, state.poi_pos)
+    assert greedy_match(dist).tolist() == [1, 0]
+    assert uncross(jnp.array([1, 0]), dist).tolist() == [0, 1]
+    assert uncross(jnp.array([0, 1]), dist).tolist() == [0, 1]
+    np.testing.assert_array_equal(observe_entities(state, params, matched=True).tokens[:, 1:3, CLAIM], np.eye(2))
 
 
 def test_the_matching_hands_a_failed_rovers_poi_to_a_rover_whose_poi_is_observed():

@@ -102,12 +102,31 @@ def _greedy(dist: np.ndarray, rovers: np.ndarray, pois: np.ndarray) -> dict[int,
     return matched
 
 
+def _uncross(own: dict[int, int], dist: np.ndarray) -> None:
+    """Swap two rovers' POIs in ``own`` {rover: POI} while that shortens their summed distance,
+    the pair that saves the most first (the first in row-major order on a tie), at most N
+    times."""
+    for _ in range(len(dist)):
+        best, pair = 1e-6, None
+        for a in range(len(dist)):
+            for b in range(len(dist)):
+                if a in own and b in own:
+                    saving = dist[a, own[a]] + dist[b, own[b]] - dist[a, own[b]] - dist[b, own[a]]
+                    if saving > best:
+                        best, pair = saving, (a, b)
+        if pair is None:
+            return
+        a, b = pair
+        own[a], own[b] = own[b], own[a]
+
+
 def poi_matches(dist: np.ndarray, working: np.ndarray, observed: np.ndarray) -> np.ndarray:
     """[N, P] 1 on the POI each working rover is given, else 0: the claim feature of
-    ``poi_order`` "matched". A greedy matching of the working rovers to the POIs; then the POIs
-    it leaves open (not ``observed``, given to no rover) go, by a greedy matching again, to the
-    rovers whose POI is observed or who have none."""
+    ``poi_order`` "matched". A greedy matching of the working rovers to the POIs, its crossing
+    routes swapped apart; then the POIs it leaves open (not ``observed``, given to no rover) go,
+    by a greedy matching again, to the rovers whose POI is observed or who have none."""
     own = _greedy(dist, working, np.ones(dist.shape[1], bool))
+    _uncross(own, dist)
     pending = {poi for poi in own.values() if not observed[poi]}
     open_pois = np.array([not observed[poi] and poi not in pending for poi in range(dist.shape[1])])
     free = np.array([working[r] and (r not in own or observed[own[r]]) for r in range(len(dist))])

@@ -146,14 +146,37 @@ def hand_over(
     return jnp.where(handed >= 0, handed, target)
 
 
+def uncross(target: jax.Array, dist: jax.Array) -> jax.Array:
+    """[N] each rover's POI ``target`` [N] (-1: none) improved by swaps: while two rovers that
+    both have a POI would drive less in sum with their POIs swapped (``dist`` [N, P]), swap the
+    pair that saves the most, at most N times (2-opt). Two straight routes that cross always
+    save by the swap (the triangle inequality), so the greedy matching's crossing routes, where
+    rovers meet on the way, are undone. Jittable."""
+    n = target.shape[0]
+    rows = jnp.arange(n)
+    for _ in range(n):
+        has = target >= 0
+        index = jnp.maximum(target, 0)
+        own = dist[rows, index]
+        cross = dist[:, index]  # [a, b]: rover a to rover b's POI
+        gain = jnp.where(has[:, None] & has[None, :], own[:, None] + own[None, :] - cross - cross.T, 0.0)
+        a, b = jnp.divmod(jnp.argmax(gain), n)
+        do = gain[a, b] > 1e-6
+        swapped = target.at[a].set(target[b]).at[b].set(target[a])
+        target = jnp.where(do, swapped, target)
+    return target
+
+
 def poi_matches(dist: jax.Array, working: jax.Array, pois: jax.Array, observed: jax.Array) -> jax.Array:
     """[N, P] 1 on the POI each rover is given, else 0 (a rover left without one, failed or not
     there: 0 everywhere): :func:`greedy_match` of the ``working`` [N] rovers to the POIs that
-    exist (``pois`` [P]) by their distances ``dist`` [N, P], then the POIs that leaves open
-    (not ``observed`` [P], no working rover's) :func:`hand_over` to the rovers whose POI is
-    observed. Recomputed at every step, it tells each rover which POI is its own in a
-    one-to-one split of the work that still needs doing, and who takes over a failed rover's."""
+    exist (``pois`` [P]) by their distances ``dist`` [N, P], its crossing routes undone
+    (:func:`uncross`), then the POIs that leaves open (not ``observed`` [P], no working rover's)
+    :func:`hand_over` to the rovers whose POI is observed. Recomputed at every step, it tells
+    each rover which POI is its own in a one-to-one split of the work that still needs doing,
+    and who takes over a failed rover's."""
     target = greedy_match(jnp.where(working[:, None] & pois[None, :], dist, jnp.inf))
+    target = uncross(target, dist)
     target = hand_over(target, dist, working, pois, observed)
     return jax.nn.one_hot(target, dist.shape[1], dtype=dist.dtype)  # a row of -1 is all zeros
 
