@@ -159,17 +159,16 @@ ANYSIZE = dataclasses.replace(
 )
 """One policy for every swarm size: MAPPO whose 2 x 128 actor and value see each rover's 4
 nearest other rovers, POIs and traps (no rover ids), the POI that a greedy matching of the
-rovers to the POIs (a failed rover's open POI handed over) gives the rover first
-(``--poi-order matched``; a POI's token carries the rover's lead on it and that matching),
-the value also the whole swarm's mean view and size
-(``--swarm-value``), trained on swarms of 2 to 10 rovers, a size drawn per episode, the
-largest size drawn growing from 2 to 10 over the first 15,000 episodes, each episode weighing
-the same in the loss whatever its size (``--balance-sizes``); 80,000 episodes, the learning
-rates decaying linearly to 0 over them (``--anneal-episodes``: give it with ``--episodes``,
-or the rates stop short of 0 or reach it early), 54 minutes for 5 seeds on 2 cores
-(``docs/results/any-size/``). Attention over the entities
-(``--network entity``) is the other encoder; one update cost 13 to 43 times as much here
-(docs/results/any-size/README.md), too slow for a 5-seed run so far."""
+rovers to the POIs (crossing routes swapped, a failed rover's open POI handed over) gives
+the rover first (``--poi-order matched``; a POI's token carries the rover's lead on it and
+that matching), the value also the whole swarm's mean view and size (``--swarm-value``),
+trained on swarms of 2 to 10 rovers, a size drawn per episode, the largest size drawn growing
+from 2 to 10 over the first 15,000 episodes, each episode weighing the same in the loss
+whatever its size (``--balance-sizes``); 80,000 episodes, the learning rates decaying
+linearly to 0 over them (``--anneal-episodes``: give it with ``--episodes``, or the rates stop
+short of 0 or reach it early), 54 minutes for 5 seeds on 2 cores (``docs/results/any-size/``).
+Attention over the entities (``--network entity``) is the other encoder; one update cost 13 to
+43 times as much here (docs/results/any-size/README.md), too slow for a 5-seed run so far."""
 
 ANYSIZE_DDPG = dataclasses.replace(
     SWARM,

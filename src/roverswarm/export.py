@@ -87,8 +87,8 @@ def view_of(config: TrainConfig) -> dict:
     pois = {
         "nearest": "",
         "free": " (those with a positive claim lead first)",
-        "matched": " (the rover's POI in the greedy matching, open POIs handed to rovers whose POI is observed, "
-        "first; its claim feature is that matching)",
+        "matched": " (the rover's POI in the greedy matching, crossing routes swapped, open POIs handed to rovers "
+        "whose POI is observed, first; its claim feature is that matching)",
     }[poi_order]
     return {  # --network entity (every entity, or the K nearest of each type) or nearest (K)
         "kind": "entity",

@@ -111,8 +111,9 @@ class AlgoConfig:
     that no nearer rover claims as its nearest (claim lead > 0) first, each part nearest first,
     so that a rover whose nearest POIs are taken sees an open one however far it is (the
     nearest K alone hide it from N = K + 1 POIs). `matched`: the POI that a greedy matching of
-    the working rovers to the POIs (the nearest pair first, recomputed every step) gives the
-    rover first, then the rest nearest first; a POI not yet observed that the matching leaves
+    the working rovers to the POIs (the nearest pair first, recomputed every step; two rovers'
+    POIs swapped while that shortens their sum, so routes do not cross) gives the rover first,
+    then the rest nearest first; a POI not yet observed that the matching leaves
     to no working rover (its rover failed, or more POIs than rovers) goes to a rover whose POI
     is observed, as the oracle reassigns; the POI tokens' claim feature holds that matching
     (1 on the rover's POI, else 0) instead of the claim lead. A POI observed earlier
