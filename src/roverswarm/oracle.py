@@ -11,7 +11,8 @@ trap contacts per episode on ``paper-3`` and 1.7 on ``paper-5``, against 5 and 1
 random policy).
 
 Inside a jitted training loop the Hungarian method is out of reach; :func:`greedy_plan`
-assigns greedily instead (the closest remaining rover and POI first), on device.
+assigns greedily instead (the closest remaining rover and POI first, then crossing routes
+swapped apart), on device.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import numpy as np
 from flax import struct
 from scipy.optimize import linear_sum_assignment
 
-from roverswarm.env.entities import greedy_match, hand_over
+from roverswarm.env.entities import greedy_match, hand_over, uncross
 from roverswarm.env.mars import EnvParams, EnvState, masks_of, other_rovers, pairwise_dist, trap_radii
 
 # Clearance kept from a trap's or another rover's edge, and how many steps the controller takes to close the
@@ -73,13 +74,14 @@ def oracle_plan(states: EnvState, params: EnvParams) -> OraclePlan:
 
 def greedy_plan(state: EnvState, params: EnvParams) -> OraclePlan:
     """The oracle's plan of one freshly reset environment, on device: rovers matched to POIs by
-    :func:`greedy_match` on their distances (the Hungarian method of :func:`oracle_plan` is
-    host-side). A padded layout's empty slots take no part."""
+    :func:`greedy_match` on their distances, crossing routes swapped apart (:func:`uncross`;
+    the Hungarian method of :func:`oracle_plan` is host-side), as the matched view splits the
+    work. A padded layout's empty slots take no part."""
     cost = pairwise_dist(state.rover_pos, state.poi_pos)
     masks = masks_of(state)
     if masks is not None:
         cost = jnp.where(masks.rovers[:, None] & masks.pois[None, :], cost, jnp.inf)
-    return OraclePlan(poi=greedy_match(cost), home=state.rover_pos)
+    return OraclePlan(poi=uncross(greedy_match(cost), cost), home=state.rover_pos)
 
 
 def oracle_goals(state: EnvState, plan: OraclePlan, params: EnvParams) -> jax.Array:
