@@ -166,7 +166,7 @@ trained on swarms of 2 to 10 rovers, a size drawn per episode, the largest size 
 from 2 to 10 over the first 15,000 episodes, each episode weighing the same in the loss
 whatever its size (``--balance-sizes``); 80,000 episodes, the learning rates decaying
 linearly to 0 over them (``--anneal-episodes``: give it with ``--episodes``, or the rates stop
-short of 0 or reach it early), 54 minutes for 5 seeds on 2 cores (``docs/results/any-size/``).
+short of 0 or reach it early), 53 minutes for 5 seeds on 2 cores (``docs/results/any-size/``).
 Attention over the entities (``--network entity``) is the other encoder; one update cost 13 to
 43 times as much here (docs/results/any-size/README.md), too slow for a 5-seed run so far."""
 

@@ -50,11 +50,12 @@ HERE = Path(__file__).resolve().parent
 SIZES = (2, 3, 4, 5, 6, 7, 8, 9, 10, 12, 16, 20, 32)
 BASELINES = {"swarm (60k)", "swarm-ddpg (60k)", "mappo (40k)"}
 """The best per-size rows of today (one network per size), from the scale sweeps."""
-EARLIER = tuple(HERE / f"any-size-v{k}.csv" for k in (1, 2, 3, 4))
+EARLIER = (*(HERE / f"any-size-v{k}.csv" for k in (1, 2, 3, 4)), HERE / "any-size-matched.csv")
 """The earlier anysize runs' rows, kept beside the new: the first (20,000 episodes, no POI lead,
 no curriculum), the second (60,000 episodes, 2 x 64 networks, no sample balance), the third
-(200,000 episodes, constant learning rates) and the fourth (250,000 episodes, annealed; no
-claim lead, a value of the rover's own view)."""
+(200,000 episodes, constant learning rates), the fourth (250,000 episodes, annealed; no
+claim lead, a value of the rover's own view) and the matched view's first (80,000 episodes,
+the greedy matching before its crossing routes were swapped apart)."""
 SPECIALIST_SIZES = (2, 3, 5, 8, 10)
 SPECIALISTS = HERE / "any-size-specialists.csv"
 
@@ -145,7 +146,7 @@ def draw(rows: list[dict[str, object]], path: Path) -> None:
     others = [r for r in read_table(HERE.parent / "swarm" / "score-vs-n.csv") if r["setting"] in BASELINES]
     preset = [HERE / "any-size.csv"] if path.with_suffix(".csv") != HERE / "any-size.csv" else []
     for extra in (SPECIALISTS, *EARLIER, *preset):
-        others += read_table(extra) if extra.exists() else []
+        others += read_table(extra) if extra.exists() and extra != path.with_suffix(".csv") else []
     figure(rows + others, path)
 
 
