@@ -25,7 +25,7 @@ import numpy as np
 from flax import struct
 from scipy.optimize import linear_sum_assignment
 
-from roverswarm.env.entities import greedy_match, hand_over, uncross
+from roverswarm.env.entities import hand_over, match_pois
 from roverswarm.env.mars import EnvParams, EnvState, masks_of, other_rovers, pairwise_dist, trap_radii
 
 # Clearance kept from a trap's or another rover's edge, and how many steps the controller takes to close the
@@ -74,14 +74,14 @@ def oracle_plan(states: EnvState, params: EnvParams) -> OraclePlan:
 
 def greedy_plan(state: EnvState, params: EnvParams) -> OraclePlan:
     """The oracle's plan of one freshly reset environment, on device: rovers matched to POIs by
-    :func:`greedy_match` on their distances, crossing routes swapped apart (:func:`uncross`;
-    the Hungarian method of :func:`oracle_plan` is host-side), as the matched view splits the
-    work. A padded layout's empty slots take no part."""
+    :func:`~roverswarm.env.entities.match_pois` on their distances (greedy, crossing routes
+    swapped apart; the Hungarian method of :func:`oracle_plan` is host-side), as the matched
+    view splits the work. A padded layout's empty slots take no part."""
     cost = pairwise_dist(state.rover_pos, state.poi_pos)
     masks = masks_of(state)
     if masks is not None:
         cost = jnp.where(masks.rovers[:, None] & masks.pois[None, :], cost, jnp.inf)
-    return OraclePlan(poi=uncross(greedy_match(cost), cost), home=state.rover_pos)
+    return OraclePlan(poi=match_pois(cost), home=state.rover_pos)
 
 
 def oracle_goals(state: EnvState, plan: OraclePlan, params: EnvParams) -> jax.Array:
@@ -102,9 +102,8 @@ def oracle_goals(state: EnvState, plan: OraclePlan, params: EnvParams) -> jax.Ar
     if masks is not None:  # the empty slots of a padded layout neither work nor need a visit
         working, pois = working & masks.rovers, masks.pois
     dist = pairwise_dist(state.rover_pos, state.poi_pos)  # [N, P]
-    target = hand_over(plan.poi, dist, working, pois, state.observed)
-    home = jnp.where((plan.poi >= 0)[:, None], state.poi_pos[jnp.maximum(plan.poi, 0)], plan.home)
-    return jnp.where((target >= 0)[:, None], state.poi_pos[jnp.maximum(target, 0)], home)
+    target = hand_over(plan.poi, dist, working, pois, state.observed)  # the plan's POI unless handed another
+    return jnp.where((target >= 0)[:, None], state.poi_pos[jnp.maximum(target, 0)], plan.home)
 
 
 def _steer_around(

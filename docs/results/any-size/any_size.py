@@ -140,12 +140,10 @@ def specialists(folder: Path, episodes: int, seeds: int, eval_episodes: int) -> 
 
 
 def draw(rows: list[dict[str, object]], path: Path) -> None:
-    """The figure: ``rows`` (the one policy) beside its specialists, the earlier runs (and the
-    committed run of the preset, when ``rows`` are another setting's) and the best per-size
-    rows of the scale sweeps."""
+    """The figure: ``rows`` (the one policy) beside its specialists, the earlier runs and the
+    best per-size rows of the scale sweeps (every committed table but ``path``'s own)."""
     others = [r for r in read_table(HERE.parent / "swarm" / "score-vs-n.csv") if r["setting"] in BASELINES]
-    preset = [HERE / "any-size.csv"] if path.with_suffix(".csv") != HERE / "any-size.csv" else []
-    for extra in (SPECIALISTS, *EARLIER, *preset):
+    for extra in (SPECIALISTS, *EARLIER, HERE / "any-size.csv"):
         others += read_table(extra) if extra.exists() and extra != path.with_suffix(".csv") else []
     figure(rows + others, path)
 

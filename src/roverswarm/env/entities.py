@@ -16,8 +16,8 @@ Per rover i (pure JAX, jittable, vmappable; leading batch axes come only from vm
   how much nearer rover i is than every other working rover, negative if another is nearer)
   and its claim lead (:func:`poi_claims`: the same against only the rovers whose nearest POI
   it is; with ``matched``, instead, 1 on the POI a greedy matching of the rovers to the POIs,
-  the open POIs handed over, gives rover i, :func:`poi_matches`); both 0 for rovers and traps. Other rovers in index
-  order skipping i, then POIs, traps;
+  crossing routes swapped and open POIs handed over, gives rover i, :func:`poi_matches`); both
+  0 for rovers and traps. Other rovers in index order skipping i, then POIs, traps;
 * ``mask`` [N, M] bool: the token is an entity that exists. In an unpadded layout every token
   exists; in a padded one the slots past the active counts do not (their features are zeros),
   and the rows of rovers that do not exist are all False.
@@ -167,16 +167,22 @@ def uncross(target: jax.Array, dist: jax.Array) -> jax.Array:
     return target
 
 
+def match_pois(cost: jax.Array) -> jax.Array:
+    """[N] the POI each rover is matched to (-1: none) by the costs ``cost`` [N, P] (inf: never):
+    :func:`greedy_match`, its crossing routes undone (:func:`uncross`). The split of the work
+    the matched view shows and the teacher's plan (:func:`~roverswarm.oracle.greedy_plan`)
+    follows. Jittable."""
+    return uncross(greedy_match(cost), cost)
+
+
 def poi_matches(dist: jax.Array, working: jax.Array, pois: jax.Array, observed: jax.Array) -> jax.Array:
     """[N, P] 1 on the POI each rover is given, else 0 (a rover left without one, failed or not
-    there: 0 everywhere): :func:`greedy_match` of the ``working`` [N] rovers to the POIs that
-    exist (``pois`` [P]) by their distances ``dist`` [N, P], its crossing routes undone
-    (:func:`uncross`), then the POIs that leaves open (not ``observed`` [P], no working rover's)
-    :func:`hand_over` to the rovers whose POI is observed. Recomputed at every step, it tells
-    each rover which POI is its own in a one-to-one split of the work that still needs doing,
-    and who takes over a failed rover's."""
-    target = greedy_match(jnp.where(working[:, None] & pois[None, :], dist, jnp.inf))
-    target = uncross(target, dist)
+    there: 0 everywhere): :func:`match_pois` of the ``working`` [N] rovers to the POIs that
+    exist (``pois`` [P]) by their distances ``dist`` [N, P], then the POIs that leaves open
+    (not ``observed`` [P], no working rover's) :func:`hand_over` to the rovers whose POI is
+    observed. Recomputed at every step, it tells each rover which POI is its own in a
+    one-to-one split of the work that still needs doing, and who takes over a failed rover's."""
+    target = match_pois(jnp.where(working[:, None] & pois[None, :], dist, jnp.inf))
     target = hand_over(target, dist, working, pois, observed)
     return jax.nn.one_hot(target, dist.shape[1], dtype=dist.dtype)  # a row of -1 is all zeros
 
