@@ -233,7 +233,6 @@ def test_a_flat_policy_refuses_another_size(tiny_ppo_config, tmp_path, capsys):
             },
             "--poi-order matched orders the POIs",
         ),
-        ({"trap_paths": True, "poi_order": "free"}, "--trap-paths measures the traps against each rover's path"),
         ({"fail_rate": 1.5}, r"--fail-rate must be in \[0, 1\]"),
         ({"size_curriculum": 100, "scenario": "paper-3"}, "--size-curriculum needs a range"),
         ({"balance_sizes": True, "size_curriculum": 0, "scenario": "paper-3"}, "--balance-sizes needs a range"),
@@ -365,37 +364,11 @@ def test_the_matching_hands_a_failed_rovers_poi_to_a_rover_whose_poi_is_observed
     np.testing.assert_array_equal(claim(state.replace(observed=jnp.zeros(3, bool))), np.diag([0.0, 1, 1]))
 
 
-def test_trap_paths_measure_each_trap_against_the_rovers_way_to_its_poi():
-    """--trap-paths on a hand-built layout: rover 0 drives from (-0.5, 0) to its POI at (0.5, 0);
-    trap A at (0, 0.05) is in its way, just left of the line (gap 0.05 - 0.25 = -0.2, side
-    +0.05), trap B at (0, -0.6) well clear on the right (gap 0.35, side -0.6). Once rover 0 has
-    failed it has no POI: its path is where it stands (gap: its distance to the trap less 0.25,
-    side 0). Without --trap-paths the traps' features stay 0."""
-    params = get_scenario("paper-2")
-    _, state = reset(jax.random.PRNGKey(0), params)
-    state = state.replace(
-        rover_pos=jnp.array([[-0.5, 0.0], [0.9, 0.9]]),
-        poi_pos=jnp.array([[0.5, 0.0], [0.9, 0.75]]),
-        trap_pos=jnp.array([[0.0, 0.05], [0.0, -0.6]]),
-    )
-
-    def traps(s, paths=True):  # rover 0's view of the two traps: (gap, side)
-        return np.asarray(observe_entities(s, params, matched=True, paths=paths).tokens[0, 3:5, LEAD:])
-
-    np.testing.assert_allclose(traps(state), [[-0.2, 0.05], [0.35, -0.6]], atol=1e-6)
-    failed = state.replace(fail_step=jnp.array([0, NEVER], jnp.int32))
-    np.testing.assert_allclose(traps(failed), [[np.hypot(0.5, 0.05) - 0.25, 0.0], [np.hypot(0.5, 0.6) - 0.25, 0.0]])
-    assert not traps(state, paths=False).any()
-
-
-@pytest.mark.parametrize(
-    "options", [{"poi_order": "free"}, {"poi_order": "matched"}, {"poi_order": "matched", "trap_paths": True}]
-)
-def test_the_poi_order_reaches_every_view_a_policy_acts_on(options):
+@pytest.mark.parametrize("poi_order", ["free", "matched"])
+def test_the_poi_order_reaches_every_view_a_policy_acts_on(poi_order):
     """The option from the config to the view: MAPPO's networks, the off-policy family's view
     (acting and replay), the export's policy.json and its NumPy runtime all order the POIs as
-    asked, and with --trap-paths measure the traps against each rover's path (a layout where
-    that differs from the plain cut)."""
+    asked (a layout where that differs from the plain cut)."""
     from roverswarm import export, export_numpy
     from roverswarm.algos.ppo_networks import policy_networks
     from roverswarm.config import ANYSIZE_DDPG
@@ -403,17 +376,14 @@ def test_the_poi_order_reaches_every_view_a_policy_acts_on(options):
 
     params = get_scenario("paper-6")
     _, state = reset(jax.random.PRNGKey(3), params)
-    poi_order, paths = options["poi_order"], options.get("trap_paths", False)
-    ordered = observe_nearest(state, params, 2, poi_order, paths).tokens
-    assert not np.allclose(ordered, observe_nearest(state, params, 2).tokens)
-    assert np.any(ordered[:, 4:, LEAD:] != 0) == paths  # the traps' slots
-    mappo = with_options(ANYSIZE, {"entity_nearest": 2, **options})
-    ddpg = with_options(ANYSIZE_DDPG, {"entity_nearest": 2, **options})
+    ordered, plain = (observe_nearest(state, params, 2, poi_order=o).tokens for o in (poi_order, "nearest"))
+    assert not np.allclose(ordered, plain)
+    mappo = with_options(ANYSIZE, {"entity_nearest": 2, "poi_order": poi_order})
+    ddpg = with_options(ANYSIZE_DDPG, {"entity_nearest": 2, "poi_order": poi_order})
     np.testing.assert_array_equal(policy_networks(mappo.learner, mappo.ppo).observe(state, params).tokens, ordered)
     np.testing.assert_array_equal(view_of(ddpg.learner)(state, params).tokens, ordered)
     meta = {"view": export.view_of(mappo), "env": {"rover_radius": 0.15, "observe_radius": 0.1, "trap_radius": 0.1}}
-    assert meta["view"]["poi_order"] == poi_order and meta["view"]["trap_paths"] == paths
-    assert "first" in meta["view"]["order"]
+    assert meta["view"]["poi_order"] == poi_order and "first" in meta["view"]["order"]
     s = jax.device_get(state)
     inputs = export_numpy.model_inputs(meta, s.rover_pos, s.rover_vel, s.poi_pos, s.trap_pos, s.observed)
     np.testing.assert_allclose(inputs["tokens"][0], ordered, atol=1e-6)

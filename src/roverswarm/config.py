@@ -308,11 +308,6 @@ def validate(config: TrainConfig) -> EnvParams:
         f"(got --network {entity.network} --entity-nearest {entity.entity_nearest})",
     )
     require(
-        not entity.trap_paths or entity.poi_order == "matched",
-        f"--trap-paths measures the traps against each rover's path to its matched POI: give --poi-order matched "
-        f"(got --poi-order {entity.poi_order})",
-    )
-    require(
         config.log_every % config.num_envs == 0,
         f"--log-every ({config.log_every}) must be a multiple of --num-envs ({config.num_envs})",
     )

@@ -94,7 +94,6 @@ def view_of(config: TrainConfig) -> dict:
         "kind": "entity",
         "nearest": k,
         "poi_order": poi_order,
-        "trap_paths": config.learner.trap_paths,
         "own_features": list(export_numpy.OWN_FEATURES),
         "token_features": list(export_numpy.TOKEN_FEATURES),
         "order": "other rovers (index order, skipping the rover), then POIs, then traps"

@@ -18,10 +18,8 @@ in the map's frame (x, y), as the environment's.
   ``[dx, dy, dvx, dvy, is_rover, is_poi, is_trap, radius, flag, lead, claim]`` relative to the
   rover (flag: a rover has failed, a POI has been observed this episode; lead, of a POI: the
   nearest other working rover's distance to it less this rover's, clipped to +-2; claim: the
-  same against only the other working rovers whose nearest POI it is; of a trap, 0, or with
-  ``paths`` its gap to the rover's straight path to its matched POI and its side of it:
-  :func:`trap_paths`), and ``mask`` [N, M] bool (every token here is a real entity).
-  :func:`nearest_entities` cuts it to the K nearest of each type.
+  same against only the other working rovers whose nearest POI it is), and ``mask`` [N, M] bool
+  (every token here is a real entity). :func:`nearest_entities` cuts it to the K nearest of each type.
 
 Only swarms whose every rover, POI and trap exists are described here (no padded slots):
 give the arrays of what is there.
@@ -139,23 +137,6 @@ def poi_matches(dist: np.ndarray, working: np.ndarray, observed: np.ndarray) -> 
     return matched
 
 
-def trap_paths(goal: np.ndarray, rel_traps: np.ndarray, reach: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(gap, side) [N, T] of each trap against each rover's straight path to its POI: ``goal``
-    [N, 2] the POI relative to the rover (0: none, the path is where it stands), ``rel_traps``
-    [N, T, 2], ``reach`` [T] a trap's radius plus a rover's. gap: the trap's distance from the
-    segment from the rover to its POI less ``reach`` (<= 0: driving straight runs into it);
-    side: its offset across the path's line, positive on the left (0 without a POI); both
-    clipped to +-:data:`LEAD_CAP`. One rover and trap at a time, as a geometry book has it."""
-    gap, side = np.zeros(rel_traps.shape[:2], np.float32), np.zeros(rel_traps.shape[:2], np.float32)
-    for rover, (gx, gy) in enumerate(goal.astype(np.float64)):
-        length = np.hypot(gx, gy)
-        for trap, (tx, ty) in enumerate(rel_traps[rover].astype(np.float64)):
-            t = min(max((tx * gx + ty * gy) / length**2, 0.0), 1.0) if length > 0 else 0.0
-            gap[rover, trap] = np.hypot(tx - t * gx, ty - t * gy) - reach[trap]
-            side[rover, trap] = (gx * ty - gy * tx) / length if length > 0 else 0.0
-    return np.clip(gap, -LEAD_CAP, LEAD_CAP), np.clip(side, -LEAD_CAP, LEAD_CAP)
-
-
 def _tokens(rel_pos: np.ndarray, rel_vel, kind: int, radius, flag, lead=0.0, claim=0.0) -> np.ndarray:
     """[N, K, 11] tokens of one type from positions [N, K, 2] and velocities (None: they never
     move) relative to the rover, the type (:data:`ROVER`, :data:`POI`, :data:`TRAP`), radius,
@@ -183,31 +164,31 @@ def observe_entities(
     observe_radius=0.1,
     trap_radius=0.1,
     matched: bool = False,
-    paths: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The entity view (own [N, 4], tokens [N, M, 11], mask [N, M] bool). ``observed`` [P]
     bool: POIs observed so far this episode; ``failed`` [N] bool: rovers that have failed
     (default: none of either). ``observe_radius`` is a scalar or one per POI [P],
     ``trap_radius`` a scalar or one per trap [T]: the environment's, see ``policy.json``.
-    With ``matched`` the POI tokens' claim feature is :func:`poi_matches`; with ``paths`` too,
-    the trap tokens' lead and claim features are :func:`trap_paths` against that matching."""
+    With ``matched`` the POI tokens' claim feature is :func:`poi_matches`."""
     pos, vel, pois, traps = _f32(rover_pos), _f32(rover_vel), _f32(poi_pos), _f32(trap_pos)
     n, p = len(pos), len(pois)
     observed = np.zeros(p, bool) if observed is None else np.asarray(observed, bool)
     failed = np.zeros(n, bool) if failed is None else np.asarray(failed, bool)
     others = other_rovers(n)
     dist = np.sqrt(np.sum(np.square(pos[:, None] - pois[None]), axis=-1))  # [N, P]
-    rel_pois, rel_traps = pois[None] - pos[:, None], traps[None] - pos[:, None]
-    claims = poi_matches(dist, ~failed, observed) if matched else poi_claims(dist, ~failed)
-    trap_leads = (0.0, 0.0)
-    if matched and paths:
-        goal = np.einsum("np,npd->nd", claims, rel_pois)
-        trap_leads = trap_paths(goal, rel_traps, np.broadcast_to(_f32(trap_radius), len(traps)) + rover_radius)
     tokens = np.concatenate(
         [
             _tokens(pos[others] - pos[:, None], vel[others] - vel[:, None], ROVER, rover_radius, failed[others]),
-            _tokens(rel_pois, None, POI, _f32(observe_radius), observed, poi_leads(dist, ~failed), claims),
-            _tokens(rel_traps, None, TRAP, _f32(trap_radius), 0.0, *trap_leads),
+            _tokens(
+                pois[None] - pos[:, None],
+                None,
+                POI,
+                _f32(observe_radius),
+                observed,
+                poi_leads(dist, ~failed),
+                poi_matches(dist, ~failed, observed) if matched else poi_claims(dist, ~failed),
+            ),
+            _tokens(traps[None] - pos[:, None], None, TRAP, _f32(trap_radius), 0.0),
         ],
         axis=1,
     )
@@ -255,7 +236,6 @@ def model_inputs(meta: dict, rover_pos, rover_vel, poi_pos, trap_pos, observed=N
         env["observe_radius"],
         env["trap_radius"],
         matched=poi_order == "matched",
-        paths=view.get("trap_paths", False),  # exports from before --trap-paths do not say
     )
     if view["nearest"]:
         counts = (len(own) - 1, len(np.asarray(poi_pos)), len(np.asarray(trap_pos)))

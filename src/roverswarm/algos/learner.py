@@ -118,11 +118,6 @@ class AlgoConfig:
     is observed, as the oracle reassigns; the POI tokens' claim feature holds that matching
     (1 on the rover's POI, else 0) instead of the claim lead. A POI observed earlier
     counts as any other: the coverage reward charges its distance too."""
-    trap_paths: bool = False
-    """With --poi-order matched: each trap token's lead and claim features hold the trap's gap to
-    the rover's straight path to its POI (its distance from the segment less the trap's and the
-    rover's radii: <= 0 where driving straight runs into it) and its signed offset across that
-    path, so that a rover sees which traps are in its way and on which side to pass them."""
     trap_shaping: float = 0.0
     """Reward shaping: the learner trains on the environment's reward less this much more per
     trap a rover touches per step (the environment charges 1); what it reports, and every

@@ -166,7 +166,7 @@ def _entity_kind(learner: AlgoConfig, config: Any) -> PolicyNetworks:
     def view(state, params):
         if learner.entity_nearest == 0:
             return observe_entities(state, params)
-        return observe_nearest(state, params, learner.entity_nearest, learner.poi_order, learner.trap_paths)
+        return observe_nearest(state, params, learner.entity_nearest, learner.poi_order)
 
     return PolicyNetworks(
         observe=view,
@@ -198,7 +198,7 @@ def _nearest_kind(learner: AlgoConfig, config: Any) -> PolicyNetworks:
     critic_inputs = swarm_tokens if config.swarm_value else flat_tokens
 
     def view(state, params):
-        return observe_nearest(state, params, k, learner.poi_order, learner.trap_paths)
+        return observe_nearest(state, params, k, learner.poi_order)
 
     def init(key, num_rovers, obs_size):
         k_actor, k_critic = jax.random.split(key)

@@ -17,9 +17,7 @@ Per rover i (pure JAX, jittable, vmappable; leading batch axes come only from vm
   and its claim lead (:func:`poi_claims`: the same against only the rovers whose nearest POI
   it is; with ``matched``, instead, 1 on the POI a greedy matching of the rovers to the POIs,
   crossing routes swapped and open POIs handed over, gives rover i, :func:`poi_matches`); both
-  0 for rovers, and for traps unless ``--trap-paths`` puts there the trap's gap to the rover's
-  straight path to its matched POI and its side of it (:func:`trap_paths`). Other rovers in
-  index order skipping i, then POIs, traps;
+  0 for rovers and traps. Other rovers in index order skipping i, then POIs, traps;
 * ``mask`` [N, M] bool: the token is an entity that exists. In an unpadded layout every token
   exists; in a padded one the slots past the active counts do not (their features are zeros),
   and the rows of rovers that do not exist are all False.
@@ -189,28 +187,10 @@ def poi_matches(dist: jax.Array, working: jax.Array, pois: jax.Array, observed: 
     return jax.nn.one_hot(target, dist.shape[1], dtype=dist.dtype)  # a row of -1 is all zeros
 
 
-def trap_paths(goal: jax.Array, rel_traps: jax.Array, reach: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Where each trap lies against each rover's straight path to its POI (``--trap-paths``):
-    ``goal`` [N, 2] the rover's POI relative to it (0 for a rover without one: its path is where
-    it stands), ``rel_traps`` [N, T, 2] the traps relative to it, ``reach`` [T] each trap's
-    radius plus a rover's. Returns (gap, side), each [N, T] clipped to +-:data:`LEAD_CAP`: the
-    trap's distance from the path (the segment from the rover to its POI) less ``reach``, <= 0
-    where driving straight runs into it; and its signed offset across the path's line, positive
-    on the left (0 without a POI). A rover steers round a trap in its way to the other side."""
-    length2 = jnp.sum(jnp.square(goal), axis=-1)[:, None]  # [N, 1]
-    along = jnp.clip(jnp.einsum("ntd,nd->nt", rel_traps, goal) / jnp.maximum(length2, 1e-12), 0.0, 1.0)
-    gap = jnp.linalg.norm(rel_traps - along[..., None] * goal[:, None], axis=-1) - reach
-    heading = goal / jnp.maximum(jnp.sqrt(length2), 1e-6)
-    side = heading[:, None, 0] * rel_traps[..., 1] - heading[:, None, 1] * rel_traps[..., 0]
-    return jnp.clip(gap, -LEAD_CAP, LEAD_CAP), jnp.clip(side, -LEAD_CAP, LEAD_CAP)
-
-
-def observe_entities(state: EnvState, params: EnvParams, matched: bool = False, paths: bool = False) -> EntityView:
+def observe_entities(state: EnvState, params: EnvParams, matched: bool = False) -> EntityView:
     """The entity view of every rover in ``state`` (see the module docstring for the features);
     with ``matched``, the POI tokens' claim feature holds :func:`poi_matches` instead of the
-    claim lead (``--poi-order matched``); with ``paths`` (and ``matched``) the trap tokens'
-    lead and claim features hold :func:`trap_paths` against the rover's matched POI
-    (``--trap-paths``)."""
+    claim lead (``--poi-order matched``)."""
     n, p, t = params.num_rovers, params.num_pois, params.num_traps
     pos, vel = state.rover_pos, state.rover_vel
     others = other_rovers(n)  # [N, N - 1]
@@ -227,26 +207,25 @@ def observe_entities(state: EnvState, params: EnvParams, matched: bool = False, 
     working = ~failed if masks is None else masks.rovers & ~failed
     pois_exist = jnp.ones((p,), bool) if masks is None else masks.pois
     dist = pairwise_dist(pos, state.poi_pos)
-    rel_pois, rel_traps = state.poi_pos[None] - pos[:, None], state.trap_pos[None] - pos[:, None]
-    claims = (
-        poi_matches(dist, working, pois_exist, state.observed) if matched else poi_claims(dist, working, pois_exist)
-    )
     pois = _tokens(
-        rel_pois,
+        state.poi_pos[None] - pos[:, None],
         jnp.broadcast_to(zero_vel, (n, p, 2)),
         POI,
         jnp.broadcast_to(observe_radii(params), (n, p)),
         jnp.broadcast_to(state.observed.astype(pos.dtype), (n, p)),
-        (poi_leads(dist, working), claims),
+        (
+            poi_leads(dist, working),
+            poi_matches(dist, working, pois_exist, state.observed)
+            if matched
+            else poi_claims(dist, working, pois_exist),
+        ),
     )
-    reach = trap_radii(params) + params.rover_radius
     traps = _tokens(
-        rel_traps,
+        state.trap_pos[None] - pos[:, None],
         jnp.broadcast_to(zero_vel, (n, t, 2)),
         TRAP,
         jnp.broadcast_to(trap_radii(params), (n, t)),
         jnp.zeros((n, t), pos.dtype),
-        trap_paths(jnp.einsum("np,npd->nd", claims, rel_pois), rel_traps, reach) if matched and paths else None,
     )
     tokens = jnp.concatenate([rovers, pois, traps], axis=1)
     own = jnp.concatenate([vel, pos], axis=-1)
@@ -304,15 +283,11 @@ def nearest_width(k: int) -> int:
     return OWN_FEATURES + 3 * k * (TOKEN_FEATURES + 1)
 
 
-def observe_nearest(
-    state: EnvState, params: EnvParams, k: int, poi_order: str = "nearest", paths: bool = False
-) -> EntityView:
+def observe_nearest(state: EnvState, params: EnvParams, k: int, poi_order: str = "nearest") -> EntityView:
     """Every rover's view of its ``k`` nearest other rovers, POIs and traps
     (:func:`nearest_entities` of :func:`observe_entities`): [N, 3k, F] for any swarm size. Its
     POI slots in ``poi_order`` (:data:`POI_ORDERS`): nearest first; the open POIs first
     (``free``); or the rover's POI in the greedy matching, the open POIs handed over, first
-    (``matched``, :func:`poi_matches`, which also puts the matching in the claim feature).
-    ``paths`` (with ``matched``): the trap tokens' lead and claim features hold
-    :func:`trap_paths` (``--trap-paths``)."""
-    view = observe_entities(state, params, matched=poi_order == "matched", paths=paths)
+    (``matched``, :func:`poi_matches`, which also puts the matching in the claim feature)."""
+    view = observe_entities(state, params, matched=poi_order == "matched")
     return nearest_entities(view, params, k, free_first=poi_order != "nearest")

@@ -76,7 +76,7 @@ def view_of(learner: AlgoConfig) -> Callable | None:
     One function per config, so programs that close over it are reused."""
     if learner.network != "nearest":
         return None
-    return partial(observe_nearest, k=learner.entity_nearest, poi_order=learner.poi_order, paths=learner.trap_paths)
+    return partial(observe_nearest, k=learner.entity_nearest, poi_order=learner.poi_order)
 
 
 @functools.lru_cache(maxsize=None)

@@ -63,7 +63,6 @@ PPO_USES = (
     "entity_layers",
     "entity_nearest",
     "poi_order",
-    "trap_paths",
 )
 """The learner options PPO reads; the other ones are the off-policy family's."""
 
