@@ -121,6 +121,7 @@ def setting(config: TrainConfig) -> str:
     extra += [f"shaping {config.learner.unobserved_shaping:g}"] * (config.learner.unobserved_shaping > 0)
     extra += [f"sizes N^-{config.size_draw_power:g}"] * (config.size_draw_power > 0)
     extra += [f"{config.learner.poi_order} POIs first"] * (config.learner.poi_order != "nearest")
+    extra += [f"trap shaping {config.learner.trap_shaping:g}"] * (config.learner.trap_shaping > 0)
     decay = f" to 0 over {config.ppo.teacher_episodes / 1000:g}k" if config.ppo.teacher_episodes else ""
     extra += [f"teacher {config.ppo.teacher:g}{decay}"] * (config.ppo.teacher > 0)
     algo = config.learner.algo
@@ -183,6 +184,7 @@ def main() -> None:
         choices=POI_ORDERS,
         help="train --poi-order (default: the preset's)",
     )
+    parser.add_argument("--trap-shaping", type=float, default=0.0, help="train --trap-shaping")
     parser.add_argument("--teacher", type=float, default=0.0, help="train --teacher (rows of their own)")
     parser.add_argument("--teacher-episodes", type=int, default=0, help="train --teacher-episodes (kickstarting)")
     parser.add_argument(
@@ -209,6 +211,7 @@ def main() -> None:
             "fail_max_rovers",
             "size_draw_power",
             "poi_order",
+            "trap_shaping",
             "teacher",
             "teacher_episodes",
         )
