@@ -114,8 +114,8 @@ def off_policy(algo: str, episodes: int, seeds: int, **options) -> TrainConfig:
 
 def setting(config: TrainConfig) -> str:
     """The rows' setting: ``anysize`` (or the off-policy learner across sizes), with what the
-    run changes of the rover-loss lesson, the size draw and the teacher (and its decay) when it
-    has them."""
+    run changes of the rover-loss lesson, the size draw, the trap shaping and the teacher (and
+    its decay) when it has them."""
     limit = f" up to {config.fail_max_rovers} rovers" if config.fail_max_rovers else ""
     extra = [f"fail {config.fail_rate:g}{limit}"] * (config.fail_rate > 0)
     extra += [f"shaping {config.learner.unobserved_shaping:g}"] * (config.learner.unobserved_shaping > 0)
