@@ -35,23 +35,28 @@ HEADER = [
 ]
 
 
-def on_traps(result: Rollout, params) -> np.ndarray:
-    """[E, T, N] bool: rover on a trap after each step (the environment's contact rule)."""
+def trap_contacts(result: Rollout, params) -> np.ndarray:
+    """[E, T, N] how many traps each rover touches after each step, from the rollout's paths by
+    the environment's contact rule; checked against the environment's own episode totals."""
     pos = result.rover_pos[:, 1:]  # [E, T, N, 2]
     dist = np.linalg.norm(pos[:, :, :, None] - result.trap_pos[:, None, None], axis=-1)  # [E, T, N, traps]
     inside = (dist < params.rover_radius + np.asarray(trap_radii(params))) & result.trap_exists[:, None, None]
-    return inside.any(axis=-1)
+    contacts = inside.sum(axis=-1)
+    if not np.allclose(contacts.sum(axis=(1, 2)), result.stats.trap_contacts):
+        raise AssertionError("the contacts rebuilt from the paths differ from the environment's")
+    return contacts
 
 
 def row(n: int, name: str, result: Rollout, params) -> str:
     """One table row: ``name``'s contacts in ``result`` at N = ``n``."""
-    on = on_traps(result, params)
+    touches = trap_contacts(result, params)
+    on = touches > 0  # [E, T, N] rover on a trap
     episodes = len(on)
     before = np.concatenate([np.zeros_like(on[:, :1]), on[:, :-1]], axis=1)
     pos = result.rover_pos[:, 1:]
     to_poi = np.linalg.norm(pos[:, :, :, None] - result.poi_pos[:, None, None], axis=-1).min(axis=-1)
-    contacts = on.sum()
-    early = on[:, :5].sum() / max(contacts, 1)
+    contacts = touches.sum()
+    early = touches[:, :5].sum() / max(contacts, 1)
     where = np.median(to_poi[on]) if contacts else float("nan")
     return (
         f"| {n} | {name} | {contacts / episodes:.2f} | {(on & ~before).sum() / episodes:.2f} "
