@@ -1,18 +1,45 @@
-"""Shared test setup: XLA's optimisation level, the compilation cache, compiled programs released
+"""Shared test setup: XLA flags for fast compilation, the compilation cache, compiled programs released
 after each module, small shared configurations, a signal fixture."""
 
 from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 
 import pytest
 
-# The suite is mostly XLA compilation: at optimisation level 1 (of 0-3; 3 is XLA's default)
-# it took a quarter less CPU time from a cold cache, and training ran no slower (a learning
-# test, 3000 episodes: 64 s against 81 s; level 0 took 123 s). Set before JAX starts its
-# backend; inherited by the processes the tests start.
-os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_backend_optimization_level=1".strip()
+FAST_COMPILE_FLAGS = ("--xla_backend_optimization_level=1", "--xla_cpu_use_fusion_emitters=false")
+"""XLA flags of the tests: the suite is mostly XLA compilation. At optimisation level 1 (of
+0-3; 3 is XLA's default) it took a quarter less CPU time from a cold cache, and training ran
+no slower (a learning test, 3000 episodes: 64 s against 81 s; level 0 took 123 s). XLA's
+older CPU emitters instead of its fusion emitters took another 31% less CPU time from a cold
+cache in three compile-heavy modules (300 s -> 207 s, jaxlib 0.10.2; see docs/performance.md)."""
+
+
+def _known_to_xla(flags: str) -> bool:
+    """Whether this jaxlib accepts ``flags`` (XLA aborts a process on a flag it does not know,
+    and a later jaxlib may drop the emitters' flag)."""
+    probe = "import jax.numpy as jnp; jnp.zeros(1).block_until_ready()"
+    env = {**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu"}
+    return subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True).returncode == 0
+
+
+def _test_xla_flags(flags: str) -> str:
+    """``flags`` with those of :data:`FAST_COMPILE_FLAGS` it does not set and the jaxlib knows
+    (checked once: the xdist workers and the processes the tests start inherit the result)."""
+    missing = [flag for flag in FAST_COMPILE_FLAGS if flag.split("=")[0] not in flags]
+    if missing and _known_to_xla(" ".join([flags, *missing])):
+        return " ".join([flags, *missing]).strip()
+    for flag in missing:  # one of them unknown: keep those known
+        if _known_to_xla(f"{flags} {flag}"):
+            flags = f"{flags} {flag}"
+    return flags.strip()
+
+
+# before JAX starts its backend
+os.environ["XLA_FLAGS"] = _test_xla_flags(os.environ.get("XLA_FLAGS", ""))
 
 from roverswarm.jaxcache import enable_compilation_cache, release_compiled_programs  # noqa: E402
 
