@@ -508,3 +508,30 @@ def test_a_size_agnostic_run_drives_a_mission_of_another_size(anysize_run, tmp_p
     )
     assert {r["condition"] for r in rows} == {"no failure", "one rover fails"}
     assert all(0 <= r["success"] <= 1 for r in rows)
+
+
+def test_evaluate_and_mission_stress_drive_the_policy_behind_the_shield(anysize_run, tmp_path, capsys, monkeypatch):
+    """``--shield`` puts every seed's policy behind the safety layer: its rows are named so,
+    random and the oracle (the references) run as without it, and the shielded seeds touch
+    traps less than half as often as the same seeds without it, on the same layouts;
+    ``mission stress --shield`` shields the policy, not the oracle beside it."""
+    from roverswarm.cli import main
+
+    plain = {r["policy"]: r for r in evaluate_run(anysize_run, episodes=100, scenario="paper-3")}
+    monkeypatch.setenv("COLUMNS", "250")
+    assert main(["evaluate", str(anysize_run), "--episodes", "100", "--scenario", "paper-3", "--shield"]) == 0
+    assert "mappo seed 1, shielded" in capsys.readouterr().out
+    safe = {r["policy"]: r for r in evaluate_run(anysize_run, episodes=100, scenario="paper-3", shield=True)}
+    assert list(safe) == ["random", "oracle", "mappo seed 0, shielded", "mappo seed 1, shielded"]
+    for reference in ("random", "oracle"):
+        assert safe[reference] == plain[reference]
+    for seed in (0, 1):
+        before, after = plain[f"mappo seed {seed}"], safe[f"mappo seed {seed}, shielded"]
+        assert after["trap_contacts"] < 0.5 * before["trap_contacts"], (seed, before, after)
+
+    from roverswarm.mission import stress_mission
+
+    survey = Path(__file__).parents[1] / "examples" / "survey.yaml"
+    rows = stress_mission(survey, str(anysize_run), tmp_path, episodes=20, shield=True)
+    names = {r["policy"] for r in rows}
+    assert len(names) == 2 and "oracle" in names and (names - {"oracle"}).pop().endswith(", shielded"), names

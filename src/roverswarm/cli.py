@@ -113,7 +113,7 @@ def print_table(title: str, rows: list[dict[str, object]], left: tuple[str, ...]
 def run_evaluate(cmd: EvaluateConfig) -> None:
     from roverswarm.evaluate import evaluate_run
 
-    rows = evaluate_run(cmd.run, cmd.episodes, cmd.seed, cmd.sub_policies, cmd.partners, cmd.scenario)
+    rows = evaluate_run(cmd.run, cmd.episodes, cmd.seed, cmd.sub_policies, cmd.partners, cmd.scenario, cmd.shield)
     keys = ("scenario", "policy") if "scenario" in rows[0] else ("policy",)
     print_table(f"{cmd.run}: {cmd.episodes} deterministic episodes, seed {cmd.seed}", rows, keys)
 
@@ -158,12 +158,13 @@ def run_mission(cmd: MissionConfig) -> None:
             action.seed,
             action.policy_seed,
             action.animation,
+            action.shield,
         )
         console.print(result.files["metrics.md"].read_text(), markup=False)
         console.print(f"wrote {', '.join(str(p) for p in result.files.values())}")
     else:
         rows = mission.stress_mission(
-            action.mission, action.policy, action.out, action.episodes, action.seed, action.policy_seed
+            action.mission, action.policy, action.out, action.episodes, action.seed, action.policy_seed, action.shield
         )
         console.print(mission.markdown_table(list(rows[0]), [list(r.values()) for r in rows]), markup=False)
         console.print(f"wrote {action.out / 'stress.md'}, stress.csv and stress.png")

@@ -1,7 +1,8 @@
 """What episodes training draws, for every learner family: the swarm size of each episode of a
 range scenario (``--scenario paper-2..10``, with ``--size-curriculum`` and
 ``--size-draw-power``), rover failures (``--fail-rate``, ``--fail-max-rovers``), episodes that
-end once every POI is observed (``--stop-when-complete``) and the reward the learner trains on.
+end once every POI is observed (``--stop-when-complete``), the actions the environment gets
+(``--shield``) and the reward the learner trains on.
 
 ``config`` below is a family's own config (an :class:`EpisodeOptions`) or a
 :class:`~roverswarm.config.TrainConfig`: any record with the fields of :class:`EpisodeOptions`
@@ -18,6 +19,7 @@ import jax.numpy as jnp
 from roverswarm.env.mars import EnvParams, EnvState, reset
 from roverswarm.env.scenarios import draw_sizes, range_sizes, sized
 from roverswarm.metrics import shaped_rewards
+from roverswarm.steering import shield_actions
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -82,6 +84,15 @@ def _failures_up_to(config, params: EnvParams, rovers) -> EnvParams:
 def exists(state: EnvState) -> jax.Array:
     """[..., N] bool: the rovers that exist in ``state`` (all of them unless sizes are mixed)."""
     return jnp.ones(state.fail_step.shape, bool) if state.rover_mask is None else state.rover_mask
+
+
+def executed(learner, states: EnvState, actions: jax.Array, params: EnvParams) -> jax.Array:
+    """[E, N, 2] what the environments ``states`` [E] get of the policy's ``actions``: clipped to
+    [-1, 1], and with ``learner.shield`` (an ``AlgoConfig``) behind the safety layer
+    (:func:`~roverswarm.steering.shield_actions`). The learner keeps its own actions."""
+    if learner.shield:
+        return jax.vmap(shield_actions, in_axes=(0, 0, None))(states, actions, params)
+    return jnp.clip(actions, -1.0, 1.0)
 
 
 def training_rewards(config, rewards: jax.Array, info, rovers: jax.Array) -> jax.Array:

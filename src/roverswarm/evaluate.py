@@ -17,7 +17,7 @@ from roverswarm.env.mars import EnvParams
 from roverswarm.env.scenarios import get_scenario, range_sizes, scenario_sizes
 from roverswarm.errors import require
 from roverswarm.limits import check_memory, check_seed, evaluation_parts
-from roverswarm.policies import ORACLE, RANDOM
+from roverswarm.policies import ORACLE, RANDOM, shielded
 from roverswarm.rollout import normalized_score, rollout
 from roverswarm.runs import Partners, Run, SubPolicies, check_fits
 
@@ -44,6 +44,10 @@ class EvaluateConfig:
     agents of seeds s + 1, s + 2, ... (mod seeds), partners it never trained with (each rover
     acting as its own seed's policy would in its place: shared networks and normalised
     observations too)."""
+    shield: bool = False
+    """Drive the trained policies behind the safety layer: each rover's action turned along the
+    tangent of any trap or other rover it would reach within a few steps (as the oracle steers),
+    the rest unchanged. Random and the oracle, the references, run as they are."""
 
 
 def evaluate_run(
@@ -53,11 +57,12 @@ def evaluate_run(
     sub_policies: SubPolicies = "random",
     partners: Partners = "own",
     scenario: str | None = None,
+    shield: bool = False,
 ) -> list[dict[str, float | str]]:
     """Deterministic episodes of every seed's trained policy in run folder ``out``, beside the
     random and oracle policies on the same episodes (same layouts), with the normalised score.
     Runs with policy ensembles, and ``partners``, work as :meth:`Run.policies` says; the policy
-    names say which. ``scenario``: see :class:`EvaluateConfig`.
+    names say which. ``scenario`` and ``shield``: see :class:`EvaluateConfig`.
 
     Returns one row per policy (and size): ``policy``, the :meth:`EpisodeStats.summary`
     metrics and ``normalized_score``; with several sizes, or a ``scenario``, also ``scenario``.
@@ -71,11 +76,14 @@ def evaluate_run(
     rows = []
     for name, params in _targets(run, scenario):
         policies = run.policies(sub_policies, seed, partners, rovers=params.num_rovers)
+        policies = [shielded(p) for p in policies] if shield else policies
         results = {p.name: rollout(p, key, params, episodes).stats.summary() for p in (RANDOM, ORACLE, *policies)}
         low, high = results["random"]["episode_reward"], results["oracle"]["episode_reward"]
         for policy, summary in results.items():
             score = normalized_score(summary["episode_reward"], low, high)
-            rows.append({**({"scenario": name} if named else {}), "policy": policy, **summary, "normalized_score": score})
+            rows.append(
+                {**({"scenario": name} if named else {}), "policy": policy, **summary, "normalized_score": score}
+            )
     return rows
 
 

@@ -285,7 +285,7 @@ def readme(meta: dict) -> str:
 def export_run(run_folder: str | Path, out: str | Path, seed: int = 0) -> Export:
     """Export seed ``seed`` of the finished run in ``run_folder`` into folder ``out`` (see the
     module docstring); :class:`UserError` for a folder that holds no finished run, a seed out
-    of range, or a policy that cannot be exported."""
+    of range, or a policy that cannot be exported (an ensemble, or one trained behind the safety layer)."""
     _onnx()
     run, out = Run(run_folder), Path(out)
     config = run.config
@@ -303,6 +303,11 @@ def export_run(run_folder: str | Path, out: str | Path, seed: int = 0) -> Export
         config.learner.ensemble == 1,
         f"'{run.folder}' is a policy ensemble (--ensemble {config.learner.ensemble}: each rover draws one of its "
         "sub-policies per episode), which cannot be exported; export a run with --ensemble 1",
+    )
+    require(
+        not config.learner.shield,
+        f"'{run.folder}' was trained behind the safety layer (--shield), which the ONNX model does not hold: "
+        "exported, it would act without it; export a run trained without --shield",
     )
     actor, norm = weights_of(run, seed)
     doc = f"roverswarm {config.learner.algo} actor, seed {seed} of {run.folder}"

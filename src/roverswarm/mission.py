@@ -52,6 +52,9 @@ class MissionRunConfig:
     """Which seed of a trained run drives the rovers."""
     animation: Literal["gif", "mp4"] = "gif"
     """Animation format."""
+    shield: bool = False
+    """Drive the policy behind the safety layer: each rover's action turned along the tangent of
+    any trap or other rover it would reach within a few steps (as the oracle steers)."""
 
 
 @dataclass(frozen=True)
@@ -71,6 +74,9 @@ class MissionStressConfig:
     """Seed of the episodes and of the failures."""
     policy_seed: int = 0
     """Which seed of a trained run drives the rovers."""
+    shield: bool = False
+    """Drive the policy (not the oracle beside it) behind the safety layer: each rover's action
+    turned along the tangent of any trap or other rover it would reach within a few steps."""
 
 
 @dataclass(frozen=True)
@@ -86,15 +92,16 @@ class MissionConfig:
 _FAILURE = re.compile(r"^(\d+)@(\d+)$")
 
 
-def load_policy(spec: str, mission: Mission, seed: int = 0) -> Policy:
+def load_policy(spec: str, mission: Mission, seed: int = 0, shield: bool = False) -> Policy:
     """``oracle``, ``random``, or seed ``seed`` of the trained run in folder ``spec``, checked
-    against the mission's numbers of rovers, POIs and traps."""
+    against the mission's numbers of rovers, POIs and traps; with ``shield``, behind the safety layer."""
     return runs.load_policy(
         spec,
         mission.params,
         f"mission '{mission.name}'",
         seed,
         "Train on the mission with `roverswarm train --mission FILE`.",
+        shield,
     )
 
 
@@ -248,6 +255,7 @@ def run_mission(
     seed: int = 0,
     policy_seed: int = 0,
     animation: str = "gif",
+    shield: bool = False,
 ) -> MissionResult:
     """Run ``policy_spec`` on the mission; write trajectories.csv and metrics.csv (every
     episode), metrics.md, routes.png and mission.gif (or .mp4, with its last frame as
@@ -256,7 +264,7 @@ def run_mission(
     require(animation in ("gif", "mp4"), f"--animation must be gif or mp4, got '{animation}'")
     check_seed(seed)
     mission = load_mission(mission_path)
-    policy = load_policy(policy_spec, mission, policy_seed)
+    policy = load_policy(policy_spec, mission, policy_seed, shield)
     fail_step = parse_failures(list(failures), mission.params)
     data = rollout(policy, jax.random.PRNGKey(seed), mission.params, episodes, fail_step=fail_step)
     stats = MissionStats.of(data)
@@ -361,13 +369,14 @@ def stress_mission(
     episodes: int = 500,
     seed: int = 0,
     policy_seed: int = 0,
+    shield: bool = False,
 ) -> list[dict[str, object]]:
     """``mission stress``: the policy beside the oracle, without and with a random rover
     failure; writes stress.csv, stress.md and stress.png into ``out``. Returns the rows."""
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
     check_seed(seed)
     mission = load_mission(mission_path)
-    policy = load_policy(policy_spec, mission, policy_seed)
+    policy = load_policy(policy_spec, mission, policy_seed, shield)
     policies = [policy] if policy.name == ORACLE.name else [policy, ORACLE]
     rows, curves = stress_rows(policies, mission, episodes, seed)
     out = Path(out)

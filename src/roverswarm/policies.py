@@ -27,6 +27,7 @@ from roverswarm.algos.normalize import ObsNorm
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, EnvState, observe
 from roverswarm.learners import learner_family
 from roverswarm.oracle import oracle_act, oracle_plan
+from roverswarm.steering import shield_actions
 
 if TYPE_CHECKING:
     from roverswarm.config import TrainConfig
@@ -48,6 +49,8 @@ class Policy:
     act: ActFn
     plan: PlanFn = _no_plan
     weights: Any = None
+    shield: bool = False
+    """The actions pass the safety layer (:func:`shielded`)."""
 
 
 # ----------------------------------------------------------------------------- random
@@ -82,6 +85,25 @@ def _trained_act(act: Callable, acting: Hashable, nearest_first: bool, view: Cal
     return act_fn
 
 
+@functools.lru_cache(maxsize=None)
+def _shielded_act(act_fn: ActFn) -> ActFn:
+    # one function object per inner act function, so rollouts of new weights reuse the compiled code
+    def shielded_act(key, obs, state, plan, weights, params):
+        return shield_actions(state, act_fn(key, obs, state, plan, weights, params), params)
+
+    return shielded_act
+
+
+def shielded(policy: Policy) -> Policy:
+    """``policy`` behind the safety layer (``--shield``,
+    :func:`~roverswarm.steering.shield_actions`): each action turned along the tangent of any
+    trap or other rover its velocity would reach within a few steps, the rest unchanged. A
+    policy already behind it (trained with ``--shield``) is returned as it is."""
+    if policy.shield:
+        return policy
+    return Policy(f"{policy.name}, shielded", _shielded_act(policy.act), policy.plan, policy.weights, shield=True)
+
+
 def _sub_policy_plan(num_policies: int, sub_policy: int | None, seed: int) -> PlanFn:
     """Per episode, the sub-policy every agent runs: ``sub_policy``, or a uniform draw per agent
     and episode as in training (the same draws for the same ``seed``)."""
@@ -112,7 +134,11 @@ def mixed_policy(name: str, policies: list[Policy]) -> Policy:
     act function and per-episode plan (the first's plan is used)."""
     if any(p.act is not policies[0].act for p in policies):
         raise ValueError("mixed_policy: the policies must come from one training config")
-    return Policy(name, _mixed_act(policies[0].act), policies[0].plan, weights=tuple(p.weights for p in policies))
+    first = policies[0]
+    name = f"{name}, shielded" if first.shield else name
+    return Policy(
+        name, _mixed_act(first.act), first.plan, weights=tuple(p.weights for p in policies), shield=first.shield
+    )
 
 
 def trained_policy(
@@ -127,12 +153,13 @@ def trained_policy(
     shared) trained by ``config``, on observations standardised by ``obs_norm`` (runs with
     --normalize-obs) and in the view it was trained on (--nearest-first), whatever view the
     environment shows. With ensembles (K > 1) every agent runs sub-policy ``sub_policy``, or,
-    if None, one drawn per episode as in training (by a generator seeded with ``seed``)."""
+    if None, one drawn per episode as in training (by a generator seeded with ``seed``). A run
+    trained behind the safety layer (--shield) acts behind it."""
     learner = config.learner
     weights = (actor_params, obs_norm)
     family = learner_family(learner.algo)
     acting = family.acting(config)
     act_fn = _trained_act(family.act, acting, config.nearest_first, family.view(acting))
-    if learner.ensemble == 1:
-        return Policy(name, act_fn, weights=weights)
-    return Policy(name, act_fn, _sub_policy_plan(learner.ensemble, sub_policy, seed), weights=weights)
+    plan = _no_plan if learner.ensemble == 1 else _sub_policy_plan(learner.ensemble, sub_policy, seed)
+    policy = Policy(name, act_fn, plan, weights=weights)
+    return shielded(policy) if learner.shield else policy

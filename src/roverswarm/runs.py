@@ -26,7 +26,7 @@ from roverswarm.errors import UserError, require
 from roverswarm.learners import learner_family
 from roverswarm.limits import check_memory, evaluation_parts, open_limited, read_config
 from roverswarm.metrics import EPISODE_METRICS, reduce_metric
-from roverswarm.policies import REFERENCE_POLICIES, Policy, mixed_policy, trained_policy
+from roverswarm.policies import REFERENCE_POLICIES, Policy, mixed_policy, shielded, trained_policy
 from roverswarm.storage import atomic_write, read_arrays, restore, trained_episodes
 
 CHECKPOINT = "checkpoint.npz"
@@ -319,19 +319,24 @@ class Run:
         return policies
 
 
-def load_policy(spec: str, params: EnvParams, target: str, seed: int = 0, hint: str = "") -> Policy:
+def load_policy(
+    spec: str, params: EnvParams, target: str, seed: int = 0, hint: str = "", shield: bool = False
+) -> Policy:
     """``oracle``, ``random``, or seed ``seed`` of the trained run in folder ``spec``, checked
-    against ``params``'s numbers of rovers, POIs and traps (the positions may differ).
-    ``target`` names ``params`` in the error, ``hint`` ends it."""
+    against ``params``'s numbers of rovers, POIs and traps (the positions may differ); with
+    ``shield``, behind the safety layer (:func:`~roverswarm.policies.shielded`). ``target``
+    names ``params`` in the error, ``hint`` ends it."""
     if spec in REFERENCE_POLICIES:
-        return REFERENCE_POLICIES[spec]
-    require(
-        Path(spec).is_dir(),
-        f"--policy: expected 'oracle', 'random' or a run folder of `roverswarm train`, got '{spec}'",
-    )
-    run = Run(spec)
-    check_fits(run, params, target, hint)
-    return run.policy(seed)
+        policy = REFERENCE_POLICIES[spec]
+    else:
+        require(
+            Path(spec).is_dir(),
+            f"--policy: expected 'oracle', 'random' or a run folder of `roverswarm train`, got '{spec}'",
+        )
+        run = Run(spec)
+        check_fits(run, params, target, hint)
+        policy = run.policy(seed)
+    return shielded(policy) if shield else policy
 
 
 def check_fits(run: Run, params: EnvParams, target: str, hint: str = "") -> None:

@@ -3,6 +3,8 @@
     python docs/results/any-size/any_size.py --run runs/anysize              # train (or resume), then evaluate
     python docs/results/any-size/any_size.py --run runs/anysize --evaluate   # evaluate the run as it stands
     python docs/results/any-size/any_size.py --run runs/anysize --stress-only  # only its mission stress
+    python docs/results/any-size/any_size.py --run runs/anysize --evaluate --shield \
+        --out docs/results/any-size/any-size-shield  # behind the safety layer (rows of their own)
     python docs/results/any-size/any_size.py --specialists runs/specialists  # one network per size, then the figure
     python docs/results/any-size/any_size.py --run runs/ddpg-anysize --algo ddpg --episodes 60000  # off-policy
 
@@ -56,6 +58,8 @@ no curriculum), the second (60,000 episodes, 2 x 64 networks, no sample balance)
 (200,000 episodes, constant learning rates), the fourth (250,000 episodes, annealed; no
 claim lead, a value of the rover's own view) and the matched view's first (80,000 episodes,
 the greedy matching before its crossing routes were swapped apart)."""
+PRESET = HERE / "any-size-uncrossed.csv"
+"""The preset's 5-seed run without the safety layer, beside every other table's figure."""
 SPECIALIST_SIZES = (2, 3, 5, 8, 10)
 SPECIALISTS = HERE / "any-size-specialists.csv"
 
@@ -66,11 +70,14 @@ def trained(run: Path) -> tuple[int, float]:
     return int(max(r["episodes"] for r in rows)), training_seconds(rows) / 60
 
 
-def table(run: Path, episodes: int, sizes=SIZES, setting: str = "anysize") -> list[dict[str, object]]:
-    """One row per size of ``sizes``: every seed's normalised score and the means the sweep tables give."""
+def table(
+    run: Path, episodes: int, sizes=SIZES, setting: str = "anysize", shield: bool = False
+) -> list[dict[str, object]]:
+    """One row per size of ``sizes``: every seed's normalised score and the means the sweep
+    tables give (``shield``: the policies behind the safety layer, ``evaluate --shield``)."""
     done, minutes = trained(run)
     rows = []
-    evaluated = evaluate_run(run, episodes, scenario="paper-" + ",".join(str(n) for n in sizes))
+    evaluated = evaluate_run(run, episodes, scenario="paper-" + ",".join(str(n) for n in sizes), shield=shield)
     for n in sizes:
         mine = [r for r in evaluated if r["scenario"] == f"paper-{n}"]
         by = {r["policy"]: r for r in mine}
@@ -144,20 +151,54 @@ def draw(rows: list[dict[str, object]], path: Path) -> None:
     """The figure: ``rows`` (the one policy) beside its specialists, the earlier runs and the
     best per-size rows of the scale sweeps (every committed table but ``path``'s own)."""
     others = [r for r in read_table(HERE.parent / "swarm" / "score-vs-n.csv") if r["setting"] in BASELINES]
-    for extra in (SPECIALISTS, *EARLIER, HERE / "any-size.csv"):
+    for extra in (SPECIALISTS, *EARLIER, HERE / "any-size.csv", PRESET):
         others += read_table(extra) if extra.exists() and extra != path.with_suffix(".csv") else []
     figure(rows + others, path)
 
 
-def stress(run: Path, seeds: int, episodes: int) -> list[dict[str, object]]:
+def draw_contacts(tables: dict[str, list[dict[str, object]]], path: Path) -> None:
+    """Trap contacts per episode against N (left, log scale) and as a multiple of the oracle's
+    (right), for each labelled table of :func:`table`'s rows (the seeds' mean), beside the
+    oracle's (the first table's) and twice the oracle's, issue 44's bound."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(11, 4), dpi=100)
+    counts, ratios = fig.subplots(1, 2)
+    first = next(iter(tables.values()))
+    n = [int(str(r["scenario"]).split("-")[1]) for r in first]
+    oracle = np.array([float(r["oracle_trap_contacts"]) for r in first])
+    counts.plot(n, oracle, color="black", marker="s", label="oracle")
+    counts.plot(n, 2 * oracle, color="grey", linestyle="--", label="twice the oracle's")
+    ratios.axhline(2.0, color="grey", linestyle="--", label="twice the oracle's")
+    for label, rows in tables.items():
+        contacts = np.array([float(r["trap_contacts"]) for r in rows])
+        (line,) = counts.plot(n, contacts, marker="o", label=label)
+        ratios.plot(n, contacts / oracle, marker="o", color=line.get_color(), label=label)
+    for axes in (counts, ratios):
+        axes.set_xscale("log", base=2)
+        axes.set_xticks(n, [str(k) for k in n])
+        axes.set_xlabel("rovers (N)")
+        axes.legend(fontsize=8)
+    counts.set_yscale("log")
+    counts.set_ylabel("trap contacts per episode (mean of the seeds)")
+    ratios.set_yscale("log")
+    ratios.set_ylabel("trap contacts / the oracle's")
+    counts.set_title("1000 deterministic episodes per size, the same layouts", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path)
+
+
+def stress(run: Path, seeds: int, episodes: int, shield: bool = False) -> list[dict[str, object]]:
     """``mission stress`` of the example mission for every seed's policy (and the oracle once):
-    success, POIs observed and contacts without and with one random rover failure."""
+    success, POIs observed and contacts without and with one random rover failure (``shield``:
+    the policies behind the safety layer)."""
     from roverswarm.mission import stress_mission
 
     rows = []
+    mission = HERE.parents[2] / "examples" / "mission.yaml"
     for seed in range(seeds):
-        out = run / "stress" / f"seed-{seed}"
-        found = stress_mission(HERE.parents[2] / "examples" / "mission.yaml", str(run), out, episodes, policy_seed=seed)
+        out = run / ("stress-shielded" if shield else "stress") / f"seed-{seed}"
+        found = stress_mission(mission, str(run), out, episodes, policy_seed=seed, shield=shield)
         rows += [r for r in found if r["policy"] != "oracle"]  # named by their seed
     return rows + [r for r in found if r["policy"] == "oracle"]
 
@@ -186,6 +227,7 @@ def main() -> None:
     )
     parser.add_argument("--trap-shaping", type=float, default=0.0, help="train --trap-shaping")
     parser.add_argument("--teacher", type=float, default=0.0, help="train --teacher (rows of their own)")
+    parser.add_argument("--shield", action="store_true", help="evaluate behind the safety layer (rows of their own)")
     parser.add_argument("--teacher-episodes", type=int, default=0, help="train --teacher-episodes (kickstarting)")
     parser.add_argument(
         "--algo",
@@ -222,12 +264,16 @@ def main() -> None:
             config = off_policy(args.algo, args.episodes, args.seeds, **chosen)
         train(config, out=args.run, resume=(args.run / CONFIG).exists())
     if not args.stress_only:
-        rows = table(args.run, args.eval_episodes, setting=setting(read_config(args.run / CONFIG)))
+        named = setting(read_config(args.run / CONFIG)) + " + shield" * args.shield
+        rows = table(args.run, args.eval_episodes, setting=named, shield=args.shield)
         write_csv(args.out.with_suffix(".csv"), rows)
         atomic_write(args.out.with_suffix(".md"), lambda f: f.write(markdown(rows)))
         draw(rows, args.out.with_suffix(".png"))
+        if args.shield and PRESET.exists():
+            contacts = {"the preset": read_table(PRESET), "behind the safety layer": rows}
+            draw_contacts(contacts, args.out.with_name(args.out.name + "-contacts.png"))
         print(markdown(rows))
-    stressed = stress(args.run, args.seeds, args.stress_episodes)
+    stressed = stress(args.run, args.seeds, args.stress_episodes, args.shield)
     write_csv(args.out.with_name(args.out.name + "-stress.csv"), stressed)
     for row in stressed:
         print(row["policy"], row["condition"], f"success {row['success']:.2f}", f"POIs {row['pois_observed']:.2f}")

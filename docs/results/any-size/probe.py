@@ -11,8 +11,9 @@ into ``--runs/NAME`` (resumed if there), evaluates every seed at ``--sizes`` (30
 policy by default, the same layouts for random, the oracle and every seed) and appends one
 line to ``--log``: every seed's normalised score per size, and the mean trap contacts beside
 the oracle's; with ``--stress``, also every seed's success on ``mission stress`` of the example
-mission without and with one rover failure (500 episodes each, beside the oracle's). A probe
-ranks settings; it is not a result (2 seeds, 300 episodes).
+mission without and with one rover failure (500 episodes each, beside the oracle's);
+``--shield`` evaluates both behind the safety layer. A probe ranks settings; it is not a
+result (2 seeds, 300 episodes).
 """
 
 from __future__ import annotations
@@ -64,6 +65,7 @@ def main() -> None:
     parser.add_argument("--runs", type=Path, default=Path("runs/probes"))
     parser.add_argument("--log", type=Path, default=Path("runs/probes/probes.txt"))
     parser.add_argument("--stress", action="store_true", help="also mission stress of the example mission")
+    parser.add_argument("--shield", action="store_true", help="evaluate behind the safety layer (evaluate --shield)")
     args = parser.parse_args()
     enable_compilation_cache()
     out = args.runs / args.name
@@ -72,19 +74,20 @@ def main() -> None:
     train(config, out=out, resume=(out / CONFIG).exists(), progress=False)
     minutes = (time.time() - start) / 60
     sizes: dict[str, dict] = {}
-    for row in evaluate_run(out, args.eval_episodes, scenario="paper-" + args.sizes):
+    for row in evaluate_run(out, args.eval_episodes, scenario="paper-" + args.sizes, shield=args.shield):
         size = sizes.setdefault(row["scenario"][len("paper-") :], {"scores": [], "traps": []})
         if row["policy"] == "oracle":
             size["oracle_traps"] = row["trap_contacts"]
         elif row["policy"] != "random":
             size["scores"].append(f"{row['normalized_score']:.2f}")
             size["traps"].append(row["trap_contacts"])
-    line = f"{args.name} ({args.episodes} ep, {minutes:.1f} min training): " + " | ".join(
-        f"{n}: {'/'.join(s['scores'])} tr {np.mean(s['traps']):.1f} ({s['oracle_traps']:.1f})" for n, s in sizes.items()
+    shielded = ", evaluated behind the safety layer" * args.shield
+    line = f"{args.name} ({args.episodes} ep, {minutes:.1f} min training{shielded}): " + " | ".join(
+        f"{n}: {'/'.join(s['scores'])} tr {np.mean(s['traps']):.2f} ({s['oracle_traps']:.2f})" for n, s in sizes.items()
     )
     if args.stress:
         success: dict[str, list[str]] = {}
-        for row in stress(out, args.seeds, 500):
+        for row in stress(out, args.seeds, 500, args.shield):
             success.setdefault(str(row["condition"]), []).append(f"{row['success']:.2f}")  # every seed, then the oracle
         line += " || stress " + "; ".join(f"{c}: {'/'.join(v[:-1])} (oracle {v[-1]})" for c, v in success.items())
     print(line)

@@ -138,6 +138,13 @@ class AlgoConfig:
     rover's distance. The paper's coverage counts observed POIs too, so two rovers left with
     three POIs are best placed between them; this pays for visiting the last one. Reports and
     evaluations stay the environment's reward. MADDPG, DDPG, MAPPO and IPPO."""
+    shield: bool = False
+    """Train and act behind the safety layer (roverswarm.steering): where the velocity a
+    rover's action asks for would carry it, within a few steps, into a trap's or another
+    rover's keep-out circle, the environment gets the action turned along the circle's tangent
+    (the policy learns from its own action, the layer being part of the world it acts in).
+    Every evaluation and mission of the run keeps the layer; `export` refuses such a run (the
+    model would act without it). MADDPG, DDPG, MAPPO and IPPO."""
 
 
 @struct.dataclass

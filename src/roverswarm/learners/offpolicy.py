@@ -46,7 +46,7 @@ from roverswarm.buffers.base import (
 )
 from roverswarm.env.entities import EntityView, flat_tokens, observe_nearest
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, masks_of, observe, step_env
-from roverswarm.episodes import exists, reset_all, sizes_of, training_params, training_rewards
+from roverswarm.episodes import executed, exists, reset_all, sizes_of, training_params, training_rewards
 from roverswarm.learners.base import Family, Runner, seed_keys, start_runner
 from roverswarm.learners.offpolicy_config import RUN_OPTIONS, OffPolicyConfig, check, configure, run_replay
 from roverswarm.metrics import episode_totals, masked_mean, reduce_metric, step_stats
@@ -190,7 +190,7 @@ def collect(
         noise = noise_std * jax.random.normal(step_key, (config.num_envs, params.num_rovers, ACTION_SIZE))
         actions = jnp.clip(act(config.learner, learner.actor, obs, policy, learner.obs_norm) + noise, -1.0, 1.0)
         next_obs, next_state, rewards, terminated, _, info = jax.vmap(step_env, in_axes=(0, 0, None))(
-            state, actions, params
+            state, executed(config.learner, state, actions, params), params
         )
         learned = training_rewards(config, rewards, info, rovers)
         stored = (compact.rovers_of(state), actions, learned, terminated, state.observed)

@@ -37,7 +37,7 @@ from roverswarm.algos.ppo import (
 )
 from roverswarm.algos.ppo_networks import policy_networks
 from roverswarm.env.mars import EnvParams, observation_size, step_env
-from roverswarm.episodes import exists, reset_all, training_params, training_rewards
+from roverswarm.episodes import executed, exists, reset_all, training_params, training_rewards
 from roverswarm.errors import require, require_finite, require_positive
 from roverswarm.learners.base import Family, Runner, no_replay, seed_keys, start_runner
 from roverswarm.metrics import episode_totals, step_stats
@@ -57,6 +57,7 @@ PPO_USES = (
     "collision_shaping",
     "observe_bonus",
     "unobserved_shaping",
+    "shield",
     "network",
     "entity_dim",
     "entity_heads",
@@ -162,7 +163,7 @@ def collect(
         mean, log_std = nets.policy(actor, nets.actor_inputs(obs))
         actions = mean + jnp.exp(log_std) * jax.random.normal(step_key, mean.shape)
         _, next_state, rewards, terminated, truncated, info = jax.vmap(step_env, in_axes=(0, 0, None))(
-            env_state, jnp.clip(actions, -1.0, 1.0), params
+            env_state, executed(config.learner, env_state, actions, params), params
         )
         next_obs = observe_all(next_state, params)
         live = ~done
