@@ -73,8 +73,9 @@ def trained(run: Path) -> tuple[int, float]:
 def table(
     run: Path, episodes: int, sizes=SIZES, setting: str = "anysize", shield: bool = False
 ) -> list[dict[str, object]]:
-    """One row per size of ``sizes``: every seed's normalised score and the means the sweep
-    tables give (``shield``: the policies behind the safety layer, ``evaluate --shield``)."""
+    """One row per size of ``sizes``: every seed's normalised score and trap contacts, and the
+    means the sweep tables give (``shield``: the policies behind the safety layer, ``evaluate
+    --shield``)."""
     done, minutes = trained(run)
     rows = []
     evaluated = evaluate_run(run, episodes, scenario="paper-" + ",".join(str(n) for n in sizes), shield=shield)
@@ -93,6 +94,7 @@ def table(
                 "min_score": min(scores),
                 "mean_score": float(np.mean(scores)),
                 **{k: float(np.mean([r[k] for r in seeds])) for k in ("pois_observed", "collisions", "trap_contacts")},
+                "seed_trap_contacts": " / ".join(f"{r['trap_contacts']:.2f}" for r in seeds),
                 "oracle_trap_contacts": by["oracle"]["trap_contacts"],
                 "oracle_pois_observed": by["oracle"]["pois_observed"],
                 "random_reward": by["random"]["episode_reward"],
