@@ -528,6 +528,11 @@ def test_evaluate_and_mission_stress_drive_the_policy_behind_the_shield(anysize_
     for seed in (0, 1):
         before, after = plain[f"mappo seed {seed}"], safe[f"mappo seed {seed}, shielded"]
         assert after["trap_contacts"] < 0.5 * before["trap_contacts"], (seed, before, after)
+    mixed = evaluate_run(anysize_run, episodes=10, scenario="paper-3", partners="other-seeds", shield=True)
+    assert [r["policy"] for r in mixed][2:] == [
+        "mappo agents of seeds 0/1/0, shielded",
+        "mappo agents of seeds 1/0/1, shielded",
+    ]
 
     from roverswarm.mission import stress_mission
 

@@ -21,11 +21,13 @@ from roverswarm.steering import KEEP_OUT_MARGIN, SHIELD_STEPS, shield_actions
 shield = jax.jit(shield_actions)
 
 
-def _shield_reference(state, actions, params) -> np.ndarray:
+def _shield_reference(state, actions, params) -> tuple[np.ndarray, np.ndarray]:
     """The safety layer rover by rover, in complex numbers: the velocity the clipped action
     asks for, from where the rover will be after this step; every existing obstacle in order
     (the other rovers at their next positions, then the traps), twice over; a blocking one
-    turns the heading to its keep-out circle's tangent on the side the heading leans to."""
+    turns the heading to its keep-out circle's tangent on the side the heading leans to.
+    Returns the actions [N, 2] and [N] bool: a rover came within 1e-4 of one of the rule's
+    thresholds, where float32 and float64 may decide otherwise."""
     pos, vel = np.asarray(state.rover_pos, float), np.asarray(state.rover_vel, float)
     masks = masks_of(state)
     n, t = pos.shape[0], np.asarray(state.trap_pos).shape[0]
@@ -34,8 +36,10 @@ def _shield_reference(state, actions, params) -> np.ndarray:
     decay = 1.0 - float(params.damping)
     gain = float(params.sensitivity) / float(params.mass) * float(params.dt)
     radii = np.broadcast_to(np.asarray(trap_radii(params), float), (t,))
-    nxt = [complex(*p) + complex(*v) * float(params.dt) for p, v in zip(pos, vel)]
+    frozen = np.asarray(state.time) >= np.asarray(state.fail_step)  # a failed rover stays where it is
+    nxt = [complex(*p) + (0 if f else complex(*v) * float(params.dt)) for p, v, f in zip(pos, vel, frozen)]
     out = np.clip(np.asarray(actions, float), -1.0, 1.0)
+    near = np.zeros(n, bool)
     for i in range(n):
         v = decay * complex(*vel[i]) + gain * complex(*out[i])
         speed, reach = abs(v), abs(v) * float(params.dt) * SHIELD_STEPS
@@ -46,21 +50,26 @@ def _shield_reference(state, actions, params) -> np.ndarray:
             for k in range(t)
             if traps[k]
         ]
-        turned = False
-        for centre, radius in blockers * 2:
+        turned, last = False, None
+        for k, (centre, radius) in enumerate(blockers * 2):
             keep_out = radius + KEEP_OUT_MARGIN
             gap = centre - nxt[i]
             along = (heading.conjugate() * gap).real
             across = (heading.conjugate() * gap).imag
+            if last != k % len(
+                blockers
+            ):  # the tangent of the obstacle that set the heading grazes it: either way, the same
+                edges = (along, abs(across) - keep_out, along - reach - keep_out, abs(gap) - keep_out)
+                near[i] |= min(abs(e) for e in edges) < 1e-4
             if along > 0 and abs(across) < keep_out and along < reach + keep_out:
                 angle = math.asin(min(keep_out / max(abs(gap), 1e-9), 1.0))
                 heading = gap / abs(gap) * cmath.exp(-1j * angle if across > 0 else 1j * angle)
-                turned = True
+                turned, last = True, k % len(blockers)
         if turned:
             a = (speed * heading - decay * complex(*vel[i])) / gain
             a = a / max(1.0, abs(a.real), abs(a.imag))
             out[i] = a.real, a.imag
-    return out
+    return out, near
 
 
 def _moving_states(params, count: int, seed: int):
@@ -70,23 +79,26 @@ def _moving_states(params, count: int, seed: int):
     states = jax.vmap(lambda k: reset(k, params)[1])(jax.random.split(keys[0], count))
     vel = jax.random.uniform(keys[1], states.rover_vel.shape, minval=-0.6, maxval=0.6)
     actions = jax.random.uniform(keys[2], (count, params.num_rovers, ACTION_SIZE), minval=-1.3, maxval=1.3)
-    return states.replace(rover_vel=vel), actions
+    failed = states.fail_step.at[::3, 0].set(0)  # rover 0 of every third layout failed: it stays put
+    return states.replace(rover_vel=vel, fail_step=failed), actions
 
 
 @pytest.mark.parametrize("layout", ["paper-5", "padded paper-2..6 with 4"])
 def test_the_shield_is_its_rule_rover_by_rover(layout):
-    """JAX against the NumPy loop, on layouts where rovers move towards traps and one another;
-    in a padded layout the empty slots are no obstacle."""
+    """JAX against the NumPy loop, on layouts where rovers move towards traps and one another
+    (a failed rover among them); in a padded layout the empty slots are no obstacle. Rovers
+    within 1e-4 of a threshold of the rule are left out (float32 against float64)."""
     params = get_scenario("paper-5") if layout == "paper-5" else sized(padded_scenario("paper-2..6"), 4)
     states, actions = _moving_states(params, 64, seed=1)
     got = np.asarray(jax.vmap(shield, in_axes=(0, 0, None))(states, actions, params))
-    turned = 0
+    turned = compared = 0
     for e in range(64):
         state = jax.tree.map(lambda x: x[e], states)
-        want = _shield_reference(state, actions[e], params)
-        np.testing.assert_allclose(got[e], want, atol=2e-5)
-        turned += int(np.any(np.abs(want - np.clip(np.asarray(actions[e]), -1, 1)) > 1e-6))
-    assert turned >= 10, turned  # the rule was exercised, not only the clear way
+        want, near = _shield_reference(state, actions[e], params)
+        np.testing.assert_allclose(got[e][~near], want[~near], atol=2e-5)
+        compared += int((~near).sum())
+        turned += int(np.any(np.abs(want - np.clip(np.asarray(actions[e]), -1, 1))[~near] > 1e-6))
+    assert turned >= 10 and compared >= 0.95 * 64 * 4, (turned, compared)  # the rule was exercised
 
 
 def test_a_clear_way_passes_the_action_unchanged_and_empty_slots_change_nothing():
@@ -102,13 +114,15 @@ def test_a_clear_way_passes_the_action_unchanged_and_empty_slots_change_nothing(
 
     padded = sized(padded_scenario("paper-2..6"), 3)
     states, actions = _moving_states(padded, 32, seed=3)
-    ahead = states.rover_pos[:, :3] + 0.1 * states.rover_vel[:, :3]  # where the rovers are going
+    ahead = states.rover_pos[:, :3] + 0.25 * states.rover_vel[:, :3]  # 2.5 steps on the rovers' way
     crowded = states.replace(
         rover_pos=states.rover_pos.at[:, 3:6].set(ahead), trap_pos=states.trap_pos.at[:, 3:6].set(ahead)
     )
-    first = jax.vmap(shield, in_axes=(0, 0, None))(states, actions, padded)
-    second = jax.vmap(shield, in_axes=(0, 0, None))(crowded, actions, padded)
-    np.testing.assert_array_equal(first[:, :3], second[:, :3])
+    on = jax.vmap(shield, in_axes=(0, 0, None))
+    np.testing.assert_array_equal(on(states, actions, padded)[:, :3], on(crowded, actions, padded)[:, :3])
+    every = lambda s: s.replace(rover_mask=jnp.ones_like(s.rover_mask), trap_mask=jnp.ones_like(s.trap_mask))  # noqa: E731
+    turned = on(every(crowded), actions, padded)[:, :3] != on(every(states), actions, padded)[:, :3]
+    assert np.asarray(turned).any(axis=-1).mean() > 0.3  # were they there, they would turn the rovers
 
 
 def test_a_rover_driven_at_a_trap_goes_round_it_behind_the_shield():
@@ -180,7 +194,7 @@ def test_training_behind_the_shield_gives_the_environment_the_shielded_actions(f
             first = collected.actions[0]
         got[shield_on] = (np.asarray(first), float(np.sum(totals["trap_contacts"])))
     np.testing.assert_array_equal(got[True][0], got[False][0])
-    assert got[False][1] >= 4 and got[True][1] < 0.3 * got[False][1], got
+    assert got[False][1] >= 4 and got[True][1] < 0.5 * got[False][1], got
 
 
 def test_a_run_trained_behind_the_shield_keeps_it(tiny_ppo_config, tmp_path, capsys):

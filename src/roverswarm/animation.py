@@ -34,6 +34,8 @@ class RenderConfig:
     """Random seed of the episode layout and of the random policy."""
     policy_seed: int = 0
     """Which of a trained run's seeds drives the rovers."""
+    shield: bool = False
+    """Drive the policy behind the safety layer (see `roverswarm evaluate --help`)."""
 
 
 @dataclass(frozen=True)

@@ -47,7 +47,8 @@ class EvaluateConfig:
     shield: bool = False
     """Drive the trained policies behind the safety layer: each rover's action turned along the
     tangent of any trap or other rover it would reach within a few steps (as the oracle steers),
-    the rest unchanged. Random and the oracle, the references, run as they are."""
+    the rest unchanged. Random and the oracle, the references, run as they are. A run trained
+    with --shield always acts behind the layer."""
 
 
 def evaluate_run(

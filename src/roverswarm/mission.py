@@ -75,8 +75,9 @@ class MissionStressConfig:
     policy_seed: int = 0
     """Which seed of a trained run drives the rovers."""
     shield: bool = False
-    """Drive the policy (not the oracle beside it) behind the safety layer: each rover's action
-    turned along the tangent of any trap or other rover it would reach within a few steps."""
+    """Drive the policy behind the safety layer: each rover's action turned along the tangent
+    of any trap or other rover it would reach within a few steps (with --policy oracle, the
+    oracle too; the oracle row beside it runs as it is)."""
 
 
 @dataclass(frozen=True)

@@ -91,6 +91,7 @@ def _shielded_act(act_fn: ActFn) -> ActFn:
     def shielded_act(key, obs, state, plan, weights, params):
         return shield_actions(state, act_fn(key, obs, state, plan, weights, params), params)
 
+    shielded_act.unshielded = act_fn  # for mixed_policy: one layer over the mix, not one per rover
     return shielded_act
 
 
@@ -135,10 +136,9 @@ def mixed_policy(name: str, policies: list[Policy]) -> Policy:
     if any(p.act is not policies[0].act for p in policies):
         raise ValueError("mixed_policy: the policies must come from one training config")
     first = policies[0]
-    name = f"{name}, shielded" if first.shield else name
-    return Policy(
-        name, _mixed_act(first.act), first.plan, weights=tuple(p.weights for p in policies), shield=first.shield
-    )
+    act = first.act.unshielded if first.shield else first.act  # each rover's layer reads its own action alone
+    mixed = Policy(name, _mixed_act(act), first.plan, weights=tuple(p.weights for p in policies))
+    return shielded(mixed) if first.shield else mixed
 
 
 def trained_policy(

@@ -12,8 +12,9 @@ heading leans to, at the same speed (:func:`steer_around`).
 The safety layer (:func:`shield_actions`) takes the velocity a policy's action asks for,
 looks :data:`SHIELD_STEPS` steps ahead along it, and turns it as the oracle would; an action
 whose way is clear passes unchanged. It is a fixed layer, not learned: it reads the rover's
-own velocity and where the traps and the other rovers are (only those within its few steps'
-reach can turn it: what a rover's hazard cameras would see), never the POIs or a plan.
+own velocity and where the traps and the other rovers are and go (their velocities predict
+their next positions; only what is within its few steps' reach can turn it: what a rover's
+hazard cameras would see), never the POIs or a plan.
 """
 
 from __future__ import annotations
@@ -102,11 +103,14 @@ def shield_actions(state: EnvState, actions: jax.Array, params: EnvParams) -> ja
     """The safety layer (``--shield``) on one environment's ``actions`` [N, 2]: each rover's
     action clipped to [-1, 1], and where the velocity it asks for would carry the rover, within
     :data:`SHIELD_STEPS` steps, into a trap's or another rover's keep-out circle, the action that
-    turns that velocity along the circle's tangent (:func:`steer_around`). Actions whose way is
-    clear pass unchanged (clipped); failed and absent rovers do not move whatever they get."""
+    turns that velocity along the circle's tangent (:func:`steer_around`), scaled down as a
+    whole where the turn needs more than a full action (so the turn is then short of the
+    tangent). Actions whose way is clear pass unchanged (clipped); failed and absent rovers do
+    not move whatever they get, and a failed rover is an obstacle where it stands."""
     decay, gain = dynamics(params)
     clipped = jnp.clip(actions, -1.0, 1.0)
-    next_pos = next_positions(state, params)
+    frozen = state.time >= state.fail_step  # a rover failing now stays put, whatever its velocity
+    next_pos = jnp.where(frozen[:, None], state.rover_pos, next_positions(state, params))
     velocity = decay * state.rover_vel + gain * clipped
     reach = jnp.linalg.norm(velocity, axis=-1) * params.dt * SHIELD_STEPS
     steered, turned = steer_around(next_pos, velocity, reach, *obstacles(state, params, next_pos))
