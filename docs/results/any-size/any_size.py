@@ -5,6 +5,8 @@
     python docs/results/any-size/any_size.py --run runs/anysize --stress-only  # only its mission stress
     python docs/results/any-size/any_size.py --run runs/anysize --evaluate --shield \
         --out docs/results/any-size/any-size-shield  # behind the safety layer (rows of their own)
+    python docs/results/any-size/any_size.py --run runs/anysize-shield --shield --episodes 60000 \
+        --out docs/results/any-size/any-size-shield-trained  # trained behind it
     python docs/results/any-size/any_size.py --specialists runs/specialists  # one network per size, then the figure
     python docs/results/any-size/any_size.py --run runs/ddpg-anysize --algo ddpg --episodes 60000  # off-policy
 
@@ -123,8 +125,8 @@ def off_policy(algo: str, episodes: int, seeds: int, **options) -> TrainConfig:
 
 def setting(config: TrainConfig) -> str:
     """The rows' setting: ``anysize`` (or the off-policy learner across sizes), with what the
-    run changes of the rover-loss lesson, the size draw, the trap shaping and the teacher (and
-    its decay) when it has them."""
+    run changes of the rover-loss lesson, the size draw, the trap shaping, the teacher (and
+    its decay) and the safety layer when it has them."""
     limit = f" up to {config.fail_max_rovers} rovers" if config.fail_max_rovers else ""
     extra = [f"fail {config.fail_rate:g}{limit}"] * (config.fail_rate > 0)
     extra += [f"shaping {config.learner.unobserved_shaping:g}"] * (config.learner.unobserved_shaping > 0)
@@ -133,6 +135,7 @@ def setting(config: TrainConfig) -> str:
     extra += [f"trap shaping {config.learner.trap_shaping:g}"] * (config.learner.trap_shaping > 0)
     decay = f" to 0 over {config.ppo.teacher_episodes / 1000:g}k" if config.ppo.teacher_episodes else ""
     extra += [f"teacher {config.ppo.teacher:g}{decay}"] * (config.ppo.teacher > 0)
+    extra += ["trained behind the shield"] * config.learner.shield
     algo = config.learner.algo
     return " + ".join(["anysize" if algo == "mappo" else f"{algo} across sizes", *extra])
 
@@ -229,7 +232,12 @@ def main() -> None:
     )
     parser.add_argument("--trap-shaping", type=float, default=0.0, help="train --trap-shaping")
     parser.add_argument("--teacher", type=float, default=0.0, help="train --teacher (rows of their own)")
-    parser.add_argument("--shield", action="store_true", help="evaluate behind the safety layer (rows of their own)")
+    parser.add_argument(
+        "--shield",
+        action="store_true",
+        help="the safety layer (rows of their own): train behind it (train --shield); with --evaluate or "
+        "--stress-only, evaluate a run trained without it behind it",
+    )
     parser.add_argument("--teacher-episodes", type=int, default=0, help="train --teacher-episodes (kickstarting)")
     parser.add_argument(
         "--algo",
@@ -258,6 +266,7 @@ def main() -> None:
             "trap_shaping",
             "teacher",
             "teacher_episodes",
+            "shield",
         )
         chosen = {name: getattr(args, name) for name in options}
         if args.algo == "mappo":
@@ -266,7 +275,8 @@ def main() -> None:
             config = off_policy(args.algo, args.episodes, args.seeds, **chosen)
         train(config, out=args.run, resume=(args.run / CONFIG).exists())
     if not args.stress_only:
-        named = setting(read_config(args.run / CONFIG)) + " + shield" * args.shield
+        config = read_config(args.run / CONFIG)
+        named = setting(config) + " + shield" * (args.shield and not config.learner.shield)
         rows = table(args.run, args.eval_episodes, setting=named, shield=args.shield)
         write_csv(args.out.with_suffix(".csv"), rows)
         atomic_write(args.out.with_suffix(".md"), lambda f: f.write(markdown(rows)))
