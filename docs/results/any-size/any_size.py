@@ -62,6 +62,14 @@ claim lead, a value of the rover's own view) and the matched view's first (80,00
 the greedy matching before its crossing routes were swapped apart)."""
 PRESET = HERE / "any-size-uncrossed.csv"
 """The preset's 5-seed run without the safety layer, beside every other table's figure."""
+SHIELDED = {
+    "the preset behind the safety layer": HERE / "any-size-shield.csv",
+    "trained behind the safety layer (60k)": HERE / "any-size-shield-trained.csv",
+}
+"""The tables behind the safety layer: the preset's run evaluated behind it, and the run trained
+behind it. The trap contacts figure (:data:`CONTACTS`, redrawn when either is written) sets
+every one that exists beside :data:`PRESET` and the oracle."""
+CONTACTS = HERE / "any-size-shield-contacts.png"
 SPECIALIST_SIZES = (2, 3, 5, 8, 10)
 SPECIALISTS = HERE / "any-size-specialists.csv"
 
@@ -282,8 +290,12 @@ def main() -> None:
         atomic_write(args.out.with_suffix(".md"), lambda f: f.write(markdown(rows)))
         draw(rows, args.out.with_suffix(".png"))
         if args.shield and PRESET.exists():
-            contacts = {"the preset": read_table(PRESET), "behind the safety layer": rows}
-            draw_contacts(contacts, args.out.with_name(args.out.name + "-contacts.png"))
+            own = args.out.with_suffix(".csv").resolve() in {path.resolve() for path in SHIELDED.values()}
+            shielded = {label: read_table(path) for label, path in SHIELDED.items() if path.exists()}
+            if not own:  # another run's line beside the committed ones, in a figure of its own
+                shielded[named] = rows
+            where = CONTACTS if own else args.out.with_name(args.out.name + "-contacts.png")
+            draw_contacts({"the preset": read_table(PRESET), **shielded}, where)
         print(markdown(rows))
     stressed = stress(args.run, args.seeds, args.stress_episodes, args.shield)
     write_csv(args.out.with_name(args.out.name + "-stress.csv"), stressed)
