@@ -25,7 +25,8 @@ def _shield_reference(state, actions, params) -> tuple[np.ndarray, np.ndarray]:
     """The safety layer rover by rover, in complex numbers: the velocity the clipped action
     asks for, from where the rover will be after this step; every existing obstacle in order
     (the other rovers at their next positions, then the traps), twice over; a blocking one
-    turns the heading to its keep-out circle's tangent on the side the heading leans to.
+    turns the heading to its keep-out circle's tangent on the side the heading leans to (the
+    circle of a failed rover without the margin).
     Returns the actions [N, 2] and [N] bool: a rover came within 1e-4 of one of the rule's
     thresholds, where float32 and float64 may decide otherwise."""
     pos, vel = np.asarray(state.rover_pos, float), np.asarray(state.rover_vel, float)
@@ -44,15 +45,18 @@ def _shield_reference(state, actions, params) -> tuple[np.ndarray, np.ndarray]:
         v = decay * complex(*vel[i]) + gain * complex(*out[i])
         speed, reach = abs(v), abs(v) * float(params.dt) * SHIELD_STEPS
         heading = v / speed if speed > 1e-9 else 0j
-        blockers = [(nxt[j], 2 * float(params.rover_radius)) for j in range(n) if j != i and rovers[j]]
+        blockers = [
+            (nxt[j], 2 * float(params.rover_radius) + (0.0 if frozen[j] else KEEP_OUT_MARGIN))
+            for j in range(n)
+            if j != i and rovers[j]
+        ]
         blockers += [
-            (complex(*np.asarray(state.trap_pos)[k]), radii[k] + float(params.rover_radius))
+            (complex(*np.asarray(state.trap_pos)[k]), radii[k] + float(params.rover_radius) + KEEP_OUT_MARGIN)
             for k in range(t)
             if traps[k]
         ]
         turned, last = False, None
-        for k, (centre, radius) in enumerate(blockers * 2):
-            keep_out = radius + KEEP_OUT_MARGIN
+        for k, (centre, keep_out) in enumerate(blockers * 2):
             gap = centre - nxt[i]
             along = (heading.conjugate() * gap).real
             across = (heading.conjugate() * gap).imag

@@ -5,9 +5,10 @@ Both work on the known dynamics (:func:`~roverswarm.env.mars.step_env`): the vel
 step is ``(1 - damping) * v + gain * action``, and the position moves by the *current*
 velocity first, so a rover steers from where it will be after this step. An obstacle (a trap,
 or another rover at its predicted position) blocks a rover when its heading passes within the
-obstacle's keep-out radius (the two bodies' radii plus :data:`KEEP_OUT_MARGIN`) before the
-rover's reach; the rover then heads along the tangent of the keep-out circle, on the side its
-heading leans to, at the same speed (:func:`steer_around`).
+obstacle's keep-out radius (the two bodies' radii plus :data:`KEEP_OUT_MARGIN`; round a failed
+rover, which stands still, without the margin) before the rover's reach; the rover then heads
+along the tangent of the keep-out circle, on the side its heading leans to, at the same speed
+(:func:`steer_around`).
 
 The safety layer (:func:`shield_actions`) takes the velocity a policy's action asks for,
 looks :data:`SHIELD_STEPS` steps ahead along it, and turns it as the oracle would; an action
@@ -37,19 +38,25 @@ def dynamics(params: EnvParams) -> tuple[float, float]:
 
 
 def next_positions(state: EnvState, params: EnvParams) -> jax.Array:
-    """[N, 2] where every rover will be after this step, whatever it does (its current velocity
-    moves it first)."""
-    return state.rover_pos + state.rover_vel * params.dt
+    """[N, 2] where every rover will be after this step, whatever it does: its current velocity
+    moves it first, unless it has failed (a failed rover stays where it is)."""
+    frozen = state.time >= state.fail_step
+    return jnp.where(frozen[:, None], state.rover_pos, state.rover_pos + state.rover_vel * params.dt)
 
 
 def obstacles(state: EnvState, params: EnvParams, next_pos: jax.Array) -> tuple[jax.Array, jax.Array]:
     """What every rover keeps clear of: the centres [N, K, 2] (the other rovers at their
     ``next_pos``, then the traps; traps last, as a contact with one is never needed) and their
-    keep-out radii [N, K] (0 where a padded layout has no rover or trap)."""
+    keep-out radii [N, K] (0 where a padded layout has no rover or trap). The margin
+    (:data:`KEEP_OUT_MARGIN`) covers where a moving rover's velocity does not predict it; a
+    failed rover stands still, so the others may come up to it (a POI it stands against stays
+    in reach)."""
     n, t = params.num_rovers, params.num_traps
     centres = jnp.concatenate([next_pos[other_rovers(n)], jnp.broadcast_to(state.trap_pos, (n, t, 2))], axis=1)
-    radii = jnp.concatenate([jnp.full((n - 1,), 2 * params.rover_radius), trap_radii(params) + params.rover_radius])
-    keep_out = jnp.broadcast_to(radii + KEEP_OUT_MARGIN, (n, radii.shape[0]))
+    moving = (state.time < state.fail_step)[other_rovers(n)]  # [N, N - 1]
+    rovers = 2 * params.rover_radius + jnp.where(moving, KEEP_OUT_MARGIN, 0.0)
+    traps = jnp.broadcast_to(trap_radii(params) + params.rover_radius + KEEP_OUT_MARGIN, (n, t))
+    keep_out = jnp.concatenate([rovers, traps], axis=1)
     masks = masks_of(state)
     if masks is not None:  # nothing to steer around where a padded layout has no rover or trap
         exists = jnp.concatenate([masks.rovers[other_rovers(n)], jnp.broadcast_to(masks.traps, (n, t))], axis=1)
@@ -109,8 +116,7 @@ def shield_actions(state: EnvState, actions: jax.Array, params: EnvParams) -> ja
     not move whatever they get, and a failed rover is an obstacle where it stands."""
     decay, gain = dynamics(params)
     clipped = jnp.clip(actions, -1.0, 1.0)
-    frozen = state.time >= state.fail_step  # a rover failing now stays put, whatever its velocity
-    next_pos = jnp.where(frozen[:, None], state.rover_pos, next_positions(state, params))
+    next_pos = next_positions(state, params)
     velocity = decay * state.rover_vel + gain * clipped
     reach = jnp.linalg.norm(velocity, axis=-1) * params.dt * SHIELD_STEPS
     steered, turned = steer_around(next_pos, velocity, reach, *obstacles(state, params, next_pos))

@@ -2,12 +2,17 @@
 
     python docs/results/any-size/rover_loss.py runs/anysize                     # seed 0
     python docs/results/any-size/rover_loss.py runs/anysize runs/p3-specialist --seed 1
+    python docs/results/any-size/rover_loss.py runs/anysize --shield   # each run also behind the safety layer
 
 1. ``examples/mission.yaml`` with one rover failing at a random step before the mission would
    be complete (the failures of ``roverswarm mission stress``, same key): of the episodes that
    fail, how many POIs stay unobserved, how far the working rovers end from the first of them
-   (median), how far they moved in the last 5 steps (median of the farther), and success by
-   when the failure came (as a share of the time the episode took without it), per fifth.
+   (median), how far they moved in the last 5 steps (median of the farther), how many leave a
+   POI that the failed rover stands on (its centre within the rover radius of the POI) or
+   against (within twice the rover radius less the POI's observation radius: no working rover
+   observes it without touching the failed rover, which the oracle's steering and the safety
+   layer keep them from), and success by when the failure came (as a share of the time the
+   episode took without it), per fifth.
 2. ``paper-3``, one rover failing at a uniform step in every episode: the episode reward, the
    distance of the working rovers to the POIs not yet observed summed over the steps (what
    ``--unobserved-shaping`` charges, per rover) and the share of episodes that observe every
@@ -25,7 +30,7 @@ import jax
 import numpy as np
 
 from roverswarm.env import get_scenario
-from roverswarm.env.mars import NEVER
+from roverswarm.env.mars import NEVER, observe_radii
 from roverswarm.env.missions import load_mission
 from roverswarm.jaxcache import enable_compilation_cache
 from roverswarm.mission import random_failures
@@ -35,11 +40,12 @@ from roverswarm.runs import Run, load_policy
 MISSION = Path(__file__).resolve().parents[3] / "examples" / "mission.yaml"
 
 
-def mission_failures(spec: str, seed: int, episodes: int) -> None:
-    """Measurement 1 for the run (or ``oracle``) ``spec``."""
+def mission_failures(spec: str, seed: int, episodes: int, shield: bool = False) -> None:
+    """Measurement 1 for the run (or ``oracle``) ``spec``, with ``shield`` behind the safety layer."""
     mission = load_mission(MISSION)
     params = mission.params
-    policy = load_policy(spec, params, f"mission '{mission.name}'", seed)
+    policy = load_policy(spec, params, f"mission '{mission.name}'", seed, shield=shield)
+    touching, radii = 2 * params.rover_radius, np.asarray(observe_radii(params))
     key = jax.random.PRNGKey(0)
     clean = MissionStats.of(rollout(policy, key, params, episodes))
     finish = np.where(clean.success, clean.time_to_all, params.max_steps)
@@ -47,7 +53,7 @@ def mission_failures(spec: str, seed: int, episodes: int) -> None:
     data = rollout(policy, key, params, episodes, fail_step=fail_step)
     stats = MissionStats.of(data)
     failed_rover = fail_step.argmin(axis=1)
-    ending, moving, missing = [], [], []
+    ending, moving, missing, under, against = [], [], [], [], []
     for e in np.flatnonzero(~stats.success):
         unobserved = np.flatnonzero(~data.observed[e, -1])
         working = np.arange(params.num_rovers) != failed_rover[e]
@@ -55,14 +61,19 @@ def mission_failures(spec: str, seed: int, episodes: int) -> None:
         ending.append(np.linalg.norm(end - data.poi_pos[e, unobserved[0]], axis=-1).min())
         moving.append(np.linalg.norm(end - data.rover_pos[e, -6, working], axis=-1).max())
         missing.append(len(unobserved))
-    print(f"{spec} (seed {seed}): mission with one failure {stats.success.mean():.0%} of {episodes}")
+        gap = np.linalg.norm(data.poi_pos[e, unobserved] - data.rover_pos[e, -1, failed_rover[e]], axis=-1)
+        under.append(np.any(gap < params.rover_radius))
+        against.append(np.any(gap < touching - radii[unobserved]))
+    name = f"{spec} behind the safety layer" if shield else spec
+    print(f"{name} (seed {seed}): mission with one failure {stats.success.mean():.0%} of {episodes}")
     if missing:
         counts = np.bincount(missing)
         print(
             f"  {len(missing)} fail; POIs unobserved: "
             + ", ".join(f"{k}: {c}" for k, c in enumerate(counts) if c)
             + f"; working rovers end {np.median(ending):.2f} from the first (median) and moved"
-            f" {np.median(moving):.3f} in the last 5 steps (median)"
+            f" {np.median(moving):.3f} in the last 5 steps (median); {sum(against)} leave a POI the failed rover"
+            f" stands against ({sum(under)} of them on it)"
         )
     share = fail_step.min(axis=1) / np.maximum(finish, 1)
     fifths = [
@@ -106,11 +117,14 @@ def main() -> None:
     parser.add_argument("runs", nargs="+", help="run folders of `roverswarm train` (and/or `oracle`)")
     parser.add_argument("--seed", type=int, default=0, help="which seed of each run drives the rovers")
     parser.add_argument("--episodes", type=int, default=500, help="mission episodes (paper-3: twice as many)")
+    parser.add_argument("--shield", action="store_true", help="measurement 1 also behind the safety layer")
     args = parser.parse_args()
     enable_compilation_cache()
     specs = ["oracle", *(r for r in args.runs if r != "oracle")]
     for spec in specs:
         mission_failures(spec, args.seed if spec != "oracle" else 0, args.episodes)
+        if args.shield and spec != "oracle":
+            mission_failures(spec, args.seed, args.episodes, shield=True)
     print("\npaper-3, one rover failing at a uniform step in every episode:\n")
     print("| policy | episode reward | distance to unobserved POIs, summed | all POIs observed |\n|---|---|---|---|")
     for spec in specs:
