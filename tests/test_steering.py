@@ -16,7 +16,7 @@ from roverswarm.env.mars import ACTION_SIZE, masks_of, trap_radii
 from roverswarm.env.scenarios import padded_scenario, sized
 from roverswarm.policies import RANDOM, shielded
 from roverswarm.rollout import rollout
-from roverswarm.steering import KEEP_OUT_MARGIN, SHIELD_STEPS, shield_actions
+from roverswarm.steering import FAILED_MARGIN, KEEP_OUT_MARGIN, SHIELD_STEPS, shield_actions
 
 shield = jax.jit(shield_actions)
 
@@ -26,7 +26,7 @@ def _shield_reference(state, actions, params) -> tuple[np.ndarray, np.ndarray]:
     asks for, from where the rover will be after this step; every existing obstacle in order
     (the other rovers at their next positions, then the traps), twice over; a blocking one
     turns the heading to its keep-out circle's tangent on the side the heading leans to (the
-    circle of a failed rover without the margin).
+    circle of a failed rover with the smaller margin).
     Returns the actions [N, 2] and [N] bool: a rover came within 1e-4 of one of the rule's
     thresholds, where float32 and float64 may decide otherwise."""
     pos, vel = np.asarray(state.rover_pos, float), np.asarray(state.rover_vel, float)
@@ -46,7 +46,7 @@ def _shield_reference(state, actions, params) -> tuple[np.ndarray, np.ndarray]:
         speed, reach = abs(v), abs(v) * float(params.dt) * SHIELD_STEPS
         heading = v / speed if speed > 1e-9 else 0j
         blockers = [
-            (nxt[j], 2 * float(params.rover_radius) + (0.0 if frozen[j] else KEEP_OUT_MARGIN))
+            (nxt[j], 2 * float(params.rover_radius) + (FAILED_MARGIN if frozen[j] else KEEP_OUT_MARGIN))
             for j in range(n)
             if j != i and rovers[j]
         ]

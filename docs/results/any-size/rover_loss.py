@@ -9,10 +9,10 @@
    fail, how many POIs stay unobserved, how far the working rovers end from the first of them
    (median), how far they moved in the last 5 steps (median of the farther), how many leave a
    POI that the failed rover stands on (its centre within the rover radius of the POI) or
-   against (within twice the rover radius less the POI's observation radius: no working rover
-   observes it without touching the failed rover, which the oracle's steering and the safety
-   layer keep them from), and success by when the failure came (as a share of the time the
-   episode took without it), per fifth.
+   against (within the keep-out radius round a failed rover less the POI's observation radius:
+   no working rover observes it without entering the keep-out circle, which the oracle's
+   steering and the safety layer hold them out of), and success by when the failure came (as a
+   share of the time the episode took without it), per fifth.
 2. ``paper-3``, one rover failing at a uniform step in every episode: the episode reward, the
    distance of the working rovers to the POIs not yet observed summed over the steps (what
    ``--unobserved-shaping`` charges, per rover) and the share of episodes that observe every
@@ -36,6 +36,7 @@ from roverswarm.jaxcache import enable_compilation_cache
 from roverswarm.mission import random_failures
 from roverswarm.rollout import MissionStats, Rollout, rollout
 from roverswarm.runs import Run, load_policy
+from roverswarm.steering import FAILED_MARGIN
 
 MISSION = Path(__file__).resolve().parents[3] / "examples" / "mission.yaml"
 
@@ -45,7 +46,7 @@ def mission_failures(spec: str, seed: int, episodes: int, shield: bool = False) 
     mission = load_mission(MISSION)
     params = mission.params
     policy = load_policy(spec, params, f"mission '{mission.name}'", seed, shield=shield)
-    touching, radii = 2 * params.rover_radius, np.asarray(observe_radii(params))
+    keep_out, radii = 2 * params.rover_radius + FAILED_MARGIN, np.asarray(observe_radii(params))
     key = jax.random.PRNGKey(0)
     clean = MissionStats.of(rollout(policy, key, params, episodes))
     finish = np.where(clean.success, clean.time_to_all, params.max_steps)
@@ -63,7 +64,7 @@ def mission_failures(spec: str, seed: int, episodes: int, shield: bool = False) 
         missing.append(len(unobserved))
         gap = np.linalg.norm(data.poi_pos[e, unobserved] - data.rover_pos[e, -1, failed_rover[e]], axis=-1)
         under.append(np.any(gap < params.rover_radius))
-        against.append(np.any(gap < touching - radii[unobserved]))
+        against.append(np.any(gap < keep_out - radii[unobserved]))
     name = f"{spec} behind the safety layer" if shield else spec
     print(f"{name} (seed {seed}): mission with one failure {stats.success.mean():.0%} of {episodes}")
     if missing:
