@@ -31,11 +31,9 @@ where it will be only roughly)."""
 FAILED_MARGIN = 0.03
 """Clearance kept from a failed rover's edge: it stands still, so less than
 :data:`KEEP_OUT_MARGIN` keeps the others clear of it, and a POI it stands against stays in
-reach. On the example mission with one rover failing (``mission stress``, 500 episodes) the
-oracle then touches no failed rover and loses only missions whose last POI lies under the
-failed rover: 89% finish, against 86% with the full margin (its losses there included POIs
-0.25 from the failed rover's centre); with no margin it touches them (0.18 contact steps per
-episode)."""
+reach (with the full margin the oracle lost missions whose last POI stood 0.25 from a failed
+rover's centre; with none it touched failed rovers). Measured in
+``docs/results/any-size/README.md``, section "Where the layer lost missions"."""
 SHIELD_STEPS = 3.0
 """How many steps ahead, at the velocity its action asks for, the safety layer looks."""
 
