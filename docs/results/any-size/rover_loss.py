@@ -12,7 +12,8 @@
    against (within the keep-out radius round a failed rover less the POI's observation radius:
    no working rover observes it without entering the keep-out circle, which the oracle's
    steering and the safety layer hold them out of), and success by when the failure came (as a
-   share of the time the episode took without it), per fifth.
+   share of the time the episode took without it), per fifth; and over every episode, how many
+   rover-steps a working rover touched the failed one.
 2. ``paper-3``, one rover failing at a uniform step in every episode: the episode reward, the
    distance of the working rovers to the POIs not yet observed summed over the steps (what
    ``--unobserved-shaping`` charges, per rover) and the share of episodes that observe every
@@ -54,6 +55,10 @@ def mission_failures(spec: str, seed: int, episodes: int, shield: bool = False) 
     data = rollout(policy, key, params, episodes, fail_step=fail_step)
     stats = MissionStats.of(data)
     failed_rover = fail_step.argmin(axis=1)
+    episode = np.arange(episodes)
+    to_failed = np.linalg.norm(data.rover_pos - data.rover_pos[episode, :, failed_rover][:, :, None], axis=-1)
+    touching = to_failed < 2 * params.rover_radius  # [E, T + 1, N]; the failed rover itself at 0
+    touching[episode, :, failed_rover] = False
     ending, moving, missing, under, against = [], [], [], [], []
     for e in np.flatnonzero(~stats.success):
         unobserved = np.flatnonzero(~data.observed[e, -1])
@@ -66,7 +71,10 @@ def mission_failures(spec: str, seed: int, episodes: int, shield: bool = False) 
         under.append(np.any(gap < params.rover_radius))
         against.append(np.any(gap < keep_out - radii[unobserved]))
     name = f"{spec} behind the safety layer" if shield else spec
-    print(f"{name} (seed {seed}): mission with one failure {stats.success.mean():.0%} of {episodes}")
+    print(
+        f"{name} (seed {seed}): mission with one failure {stats.success.mean():.0%} of {episodes},"
+        f" {touching.sum(axis=(1, 2)).mean():.2f} rover-steps touching the failed rover per episode"
+    )
     if missing:
         counts = np.bincount(missing)
         print(
