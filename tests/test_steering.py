@@ -155,6 +155,26 @@ def test_a_rover_driven_at_a_trap_goes_round_it_behind_the_shield():
     assert contacts.sum() == 0 and float(end.rover_pos[0, 0]) > 0.5  # past the trap, never in it
 
 
+def test_a_failed_rover_is_kept_at_a_smaller_margin_than_a_working_one():
+    """A rover about to pass 0.34 from another's centre (0.30 is touching): the shield turns it
+    away from a working rover (keep-out 0.30 + KEEP_OUT_MARGIN) and lets it pass a failed one
+    (0.30 + FAILED_MARGIN), which stands still."""
+    params = get_scenario("paper-2")
+    _, state = reset(jax.random.PRNGKey(0), params)
+    touching = 2 * params.rover_radius
+    assert touching + FAILED_MARGIN < 0.34 < touching + KEEP_OUT_MARGIN
+    state = state.replace(
+        rover_pos=jnp.array([[-0.3, 0.34], [0.0, 0.0]]),
+        rover_vel=jnp.array([[0.5, 0.0], [0.0, 0.0]]),
+        trap_pos=state.trap_pos + 100.0,
+    )
+    push = jnp.array([[1.0, 0.0], [0.0, 0.0]])  # rover 0 east, past rover 1
+    working = shield(state, push, params)
+    failed = shield(state.replace(fail_step=state.fail_step.at[1].set(0)), push, params)
+    assert float(working[0, 1]) > 0.05  # turned north, away from the working rover
+    np.testing.assert_array_equal(failed, push)
+
+
 def test_random_actions_behind_the_shield_touch_a_tenth_of_the_traps():
     """The same 200 layouts of paper-3: uniform random actions touch traps about 5 times per
     episode; the same actions behind the shield less than a tenth of that."""
