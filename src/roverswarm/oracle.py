@@ -27,7 +27,7 @@ from flax import struct
 from scipy.optimize import linear_sum_assignment
 
 from roverswarm.env.entities import hand_over, match_pois
-from roverswarm.env.mars import EnvParams, EnvState, masks_of, pairwise_dist
+from roverswarm.env.mars import EnvParams, EnvState, failed_rovers, masks_of, pairwise_dist
 from roverswarm.steering import action_for, clip_norm, dynamics, next_positions, obstacles, steer_around
 
 # How many steps the controller takes to close the remaining distance to its goal (1 = deadbeat, larger = gentler).
@@ -96,7 +96,7 @@ def oracle_goals(state: EnvState, plan: OraclePlan, params: EnvParams) -> jax.Ar
     least as many rovers as POIs nothing is ever open, so this is the plain assignment. The
     empty rover slots of a padded layout neither work nor claim a POI.
     """
-    working = state.time < state.fail_step  # [N]
+    working = ~failed_rovers(state)  # [N]
     pois = jnp.ones(params.num_pois, bool)
     masks = masks_of(state)
     if masks is not None:  # the empty slots of a padded layout neither work nor need a visit

@@ -23,7 +23,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from roverswarm.env.mars import EnvParams, EnvState, masks_of, other_rovers, trap_radii
+from roverswarm.env.mars import EnvParams, EnvState, failed_rovers, masks_of, other_rovers, trap_radii
 
 KEEP_OUT_MARGIN = 0.05
 """Clearance kept from a trap's or a working rover's edge (a working rover's velocity predicts
@@ -47,8 +47,7 @@ def dynamics(params: EnvParams) -> tuple[float, float]:
 def next_positions(state: EnvState, params: EnvParams) -> jax.Array:
     """[N, 2] where every rover will be after this step, whatever it does: its current velocity
     moves it first, unless it has failed (a failed rover stays where it is)."""
-    frozen = state.time >= state.fail_step
-    return jnp.where(frozen[:, None], state.rover_pos, state.rover_pos + state.rover_vel * params.dt)
+    return jnp.where(failed_rovers(state)[:, None], state.rover_pos, state.rover_pos + state.rover_vel * params.dt)
 
 
 def obstacles(state: EnvState, params: EnvParams, next_pos: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -58,8 +57,8 @@ def obstacles(state: EnvState, params: EnvParams, next_pos: jax.Array) -> tuple[
     :data:`KEEP_OUT_MARGIN`, or :data:`FAILED_MARGIN` round a failed rover."""
     n, t = params.num_rovers, params.num_traps
     centres = jnp.concatenate([next_pos[other_rovers(n)], jnp.broadcast_to(state.trap_pos, (n, t, 2))], axis=1)
-    moving = (state.time < state.fail_step)[other_rovers(n)]  # [N, N - 1]
-    rovers = 2 * params.rover_radius + jnp.where(moving, KEEP_OUT_MARGIN, FAILED_MARGIN)
+    failed = failed_rovers(state)[other_rovers(n)]  # [N, N - 1]
+    rovers = 2 * params.rover_radius + jnp.where(failed, FAILED_MARGIN, KEEP_OUT_MARGIN)
     traps = jnp.broadcast_to(trap_radii(params) + params.rover_radius + KEEP_OUT_MARGIN, (n, t))
     keep_out = jnp.concatenate([rovers, traps], axis=1)
     masks = masks_of(state)

@@ -37,7 +37,16 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from roverswarm.env.mars import EnvParams, EnvState, masks_of, observe_radii, other_rovers, pairwise_dist, trap_radii
+from roverswarm.env.mars import (
+    EnvParams,
+    EnvState,
+    failed_rovers,
+    masks_of,
+    observe_radii,
+    other_rovers,
+    pairwise_dist,
+    trap_radii,
+)
 
 OWN_FEATURES = 4
 """Own velocity (2) and position (2)."""
@@ -194,7 +203,7 @@ def observe_entities(state: EnvState, params: EnvParams, matched: bool = False) 
     n, p, t = params.num_rovers, params.num_pois, params.num_traps
     pos, vel = state.rover_pos, state.rover_vel
     others = other_rovers(n)  # [N, N - 1]
-    failed = state.time >= state.fail_step
+    failed = failed_rovers(state)
     rovers = _tokens(
         pos[others] - pos[:, None],
         vel[others] - vel[:, None],

@@ -132,6 +132,11 @@ def masks_of(state: EnvState) -> Masks | None:
     return Masks(state.rover_mask, state.poi_mask, state.trap_mask)
 
 
+def failed_rovers(state: EnvState) -> jax.Array:
+    """[N] bool: the rovers that have failed (``time >= fail_step``) and stand still for good."""
+    return state.time >= state.fail_step
+
+
 def trap_radii(params: EnvParams) -> jax.Array:
     """[T] radius of each trap (``trap_radius`` broadcast)."""
     return jnp.broadcast_to(jnp.asarray(params.trap_radius, jnp.float32), (params.num_traps,))
@@ -161,7 +166,7 @@ def unobserved_distance(state: EnvState, masks: Masks | None = None) -> jax.Arra
     """[] Sum over the POIs not yet observed (that exist) of the nearest *working* rover's
     distance (a rover that exists and has not failed; 0 for a POI when none works): how far
     the swarm still is from finishing its survey."""
-    working = state.time < state.fail_step
+    working = ~failed_rovers(state)
     pois = ~state.observed
     if masks is not None:
         working, pois = working & masks.rovers, pois & masks.pois
@@ -333,7 +338,7 @@ def step_env(
     force = force + contact_forces(state.rover_pos, params, exists)
     pos = state.rover_pos + state.rover_vel * params.dt
     vel = state.rover_vel * (1.0 - params.damping) + force / params.mass * params.dt
-    frozen = state.time >= state.fail_step
+    frozen = failed_rovers(state)
     if masks is not None:  # a rover that does not exist stands still
         frozen = frozen | ~masks.rovers
     pos = jnp.where(frozen[:, None], state.rover_pos, pos)
