@@ -70,6 +70,8 @@ SHIELDED = {
 behind it. The trap contacts figure (:data:`CONTACTS`, redrawn when either is written) sets
 every one that exists beside :data:`PRESET` and the oracle."""
 CONTACTS = HERE / "any-size-shield-contacts.png"
+MISSION = HERE.parents[2] / "examples" / "mission.yaml"
+"""The example mission of ``mission stress``, for this script and the ones beside it."""
 SPECIALIST_SIZES = (2, 3, 5, 8, 10)
 SPECIALISTS = HERE / "any-size-specialists.csv"
 
@@ -208,10 +210,9 @@ def stress(run: Path, seeds: int, episodes: int, shield: bool = False) -> list[d
     from roverswarm.mission import stress_mission
 
     rows = []
-    mission = HERE.parents[2] / "examples" / "mission.yaml"
     for seed in range(seeds):
         out = run / ("stress-shielded" if shield else "stress") / f"seed-{seed}"
-        found = stress_mission(mission, str(run), out, episodes, policy_seed=seed, shield=shield)
+        found = stress_mission(MISSION, str(run), out, episodes, policy_seed=seed, shield=shield)
         rows += [r for r in found if r["policy"] != "oracle"]  # named by their seed
     return rows + [r for r in found if r["policy"] == "oracle"]
 

@@ -25,10 +25,10 @@ Each run's seed ``--seed`` drives the rovers; deterministic (no exploration nois
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import jax
 import numpy as np
+from any_size import MISSION  # the script beside this one
 
 from roverswarm.env import get_scenario
 from roverswarm.env.mars import NEVER, observe_radii
@@ -38,8 +38,6 @@ from roverswarm.mission import random_failures
 from roverswarm.rollout import MissionStats, Rollout, rollout
 from roverswarm.runs import Run, load_policy
 from roverswarm.steering import FAILED_MARGIN
-
-MISSION = Path(__file__).resolve().parents[3] / "examples" / "mission.yaml"
 
 
 def mission_failures(spec: str, seed: int, episodes: int, shield: bool = False) -> None:

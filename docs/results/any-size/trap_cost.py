@@ -23,6 +23,7 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+from any_size import MISSION  # the script beside this one
 
 from roverswarm.env import get_scenario
 from roverswarm.env.missions import load_mission
@@ -35,7 +36,6 @@ from roverswarm.rollout import normalized_score, rollout
 from roverswarm.storage import atomic_write
 
 HERE = Path(__file__).resolve().parent
-MISSION = HERE.parents[2] / "examples" / "mission.yaml"
 
 SIZES = (2, 3, 4, 5, 6, 8, 10)
 
