@@ -30,11 +30,12 @@ from roverswarm.config import (
 )
 from roverswarm.env import get_scenario
 from roverswarm.env.entities import EntityView, nearest_entities, observe_entities
-from roverswarm.env.mars import NEVER, observe, reset, step_env
-from roverswarm.export import SNIPPET, export_run, random_states
+from roverswarm.env.mars import NEVER, EnvState, observe, reset, step_env
+from roverswarm.export import SHIELD, SNIPPET, env_constants, export_run, random_states, trained_sizes
 from roverswarm.learners import learner_family
 from roverswarm.learners.base import Runner
 from roverswarm.runs import CHECKPOINT, CONFIG, Run
+from roverswarm.steering import shield_actions
 from roverswarm.storage import atomic_write, save_checkpoint
 
 ort = pytest.importorskip("onnxruntime")  # the export extra (in the test extra too)
@@ -64,11 +65,17 @@ KINDS = {  # every actor kind: per-rover and shared off-policy actors, the on-po
     "ippo": tiny(IPPO, {"hidden": (16, 16), "activation": "relu"}, "paper-2"),
     "entity": tiny(ANYSIZE, {**ENTITY, "hidden": (16,)}, "paper-2..4"),
     "nearest": tiny(ANYSIZE, {"hidden": (16,), "entity_nearest": 2}, "paper-2..4"),
+    "nearest-shield": tiny(ANYSIZE, {"hidden": (16,), "entity_nearest": 2, "shield": True}, "paper-2..4"),
     "maddpg-nearest": tiny(
         SWARM, {"network": "nearest", "entity_nearest": 2, "critic_neighbors": 1, "layer_norm": True}, "paper-3"
     ),
 }
-EPISODE_SCENARIO = {"entity": "paper-5", "nearest": "paper-5", "maddpg-nearest": "paper-5"}  # a size never trained on
+EPISODE_SCENARIO = {  # a size never trained on
+    "entity": "paper-5",
+    "nearest": "paper-5",
+    "nearest-shield": "paper-5",
+    "maddpg-nearest": "paper-5",
+}
 
 
 def make_run(config: TrainConfig, folder: Path, episodes_done: int | None = None) -> Path:
@@ -158,6 +165,38 @@ def test_the_numpy_observations_equal_the_jax_ones(n):
     assert failing.any() and (~failing).any()
 
 
+@pytest.mark.parametrize("n", [3, 6])
+def test_the_numpy_safety_layer_equals_the_jax_one(n):
+    """The exported layer (``observation.py``'s ``shield_actions``) against the package's on
+    random states, some rovers failed, actions beyond the clip: the same actions, and many of
+    the rovers turned (30% at N = 3, 54% at 6: the comparison is of its turns, not its clip)."""
+    params, count = get_scenario(f"paper-{n}"), 64
+    states = random_states(params, count, seed=10 + n)
+    failing = np.random.default_rng(n).random((count, n)) < 0.3
+    states = states.replace(time=np.full(count, 10, np.int32), fail_step=np.where(failing, 5, NEVER).astype(np.int32))
+    actions = 1.5 * np.random.default_rng(20 + n).standard_normal((count, n, 2)).astype(np.float32)
+    want = np.asarray(jax.jit(jax.vmap(shield_actions, in_axes=(0, 0, None)))(states, actions, params))
+    meta = {"env": env_constants(params), "shield": SHIELD}
+    got = np.stack(
+        [
+            export_numpy.shield_actions(
+                meta, actions[e], states.rover_pos[e], states.rover_vel[e], states.trap_pos[e], failing[e]
+            )
+            for e in range(count)
+        ]
+    )
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    turned = np.abs(got - np.clip(actions, -1, 1)).max(axis=-1) > 1e-3
+    assert turned.mean() > 0.2, turned.mean()
+    # a failed rover is kept at the smaller margin: with the working rovers' margin the layer differs
+    wider = {"env": meta["env"], "shield": dict(SHIELD, failed_margin=SHIELD["keep_out_margin"])}
+    other = [
+        export_numpy.shield_actions(wider, actions[e], states.rover_pos[e], states.rover_vel[e], states.trap_pos[e], f)
+        for e, f in enumerate(failing)
+    ]
+    assert np.abs(np.stack(other) - want).max() > 1e-3
+
+
 # ----------------------------------------------------------------------------- ONNX against JAX
 
 
@@ -198,6 +237,15 @@ def episodes(run: Path, export: Path, params) -> dict:
                 (actions,) = session.run(["actions"], inputs)
                 out["inputs"].append(inputs)
                 out["actions"].append(actions)
+                if meta["shield"]:  # exported with the safety layer: its NumPy copy after the model
+                    actions = np.stack(
+                        [
+                            export_numpy.shield_actions(
+                                meta, a, s.rover_pos[e], s.rover_vel[e], s.trap_pos[e], s.time[e] >= s.fail_step[e]
+                            )
+                            for e, a in enumerate(actions)
+                        ]
+                    )
             _, state, rewards, *_ = STEP(state, jnp.asarray(actions), params)
             total += np.asarray(rewards).sum(axis=-1)
         out[driver] = (total, np.asarray(state.rover_pos))
@@ -244,12 +292,15 @@ def test_the_docs_snippet_is_the_exports(exported):
         assert SNIPPET in (export / "README.md").read_text()
 
 
-@pytest.mark.parametrize("kind", ["ddpg-shared", "entity"])
+@pytest.mark.parametrize("kind", ["ddpg-shared", "entity", "nearest-shield"])
 def test_the_docs_snippet_runs_with_numpy_and_onnxruntime_alone(exported, kind, tmp_path):
+    """Behind the layer too (a run trained with it): the snippet's actions are the JAX policy's
+    turned by the JAX layer."""
     run, export = exported[kind]
     probe = (
         docs_snippet()
-        + "\nimport sys\nnp.savez(sys.argv[1], actions=actions, **inputs)\n"
+        + "\nimport sys\nnp.savez(sys.argv[1], actions=actions, rover_pos=rover_pos, rover_vel=rover_vel, "
+        + "poi_pos=poi_pos, trap_pos=trap_pos, **inputs)\n"
         + "print(sorted({m.split('.')[0] for m in sys.modules} & {'jax', 'jaxlib', 'flax', 'roverswarm'}))\n"
     )
     result = subprocess.run(
@@ -263,7 +314,13 @@ def test_the_docs_snippet_runs_with_numpy_and_onnxruntime_alone(exported, kind, 
     assert result.stdout.strip().splitlines()[-1] == "[]"  # no JAX, no roverswarm in that process
     saved = dict(np.load(tmp_path / "out.npz"))
     actions = saved.pop("actions")
-    np.testing.assert_allclose(actions, jax_actions(run, saved), atol=1e-5)
+    swarm = {name: saved.pop(name).astype(np.float32) for name in ("rover_pos", "rover_vel", "poi_pos", "trap_pos")}
+    want = jax_actions(run, saved)
+    if Run(run).config.learner.shield:
+        n, p = len(swarm["rover_pos"]), len(swarm["poi_pos"])
+        state = EnvState(**swarm, observed=np.zeros(p, bool), time=np.int32(0), fail_step=np.full(n, NEVER, np.int32))
+        want = np.asarray(shield_actions(state, want[0], trained_sizes(Run(run))[0]))[None]
+    np.testing.assert_allclose(actions, want, atol=1e-5)
 
 
 # ----------------------------------------------------------------------------- the command
@@ -283,6 +340,23 @@ def test_the_command_exports_the_seed_it_is_given(exported, tmp_path, capsys):
         ort.InferenceSession(str(f / "policy.onnx")).run(None, obs)[0] for f in (tmp_path / "seed0", export)
     )
     assert np.abs(seed0 - seed1).max() > 0.1  # another seed's networks
+
+
+def test_export_shield_adds_the_layer_to_a_run_trained_without_it(exported, tmp_path, capsys):
+    """``export --shield``: policy.json holds the layer's constants (None without it, and for a
+    run trained behind it it is always there), the README says to apply it."""
+    from roverswarm.cli import main
+
+    run, plain = exported["mappo"]
+    assert main(["export", str(run), "--out", str(tmp_path / "shielded"), "--shield"]) == 0
+    assert "with the safety layer" in " ".join(capsys.readouterr().out.split())
+    meta = json.loads((tmp_path / "shielded" / "policy.json").read_text())
+    assert meta["shield"] == dict(SHIELD, trained_behind=False)
+    assert "apply `shield_actions`" in (tmp_path / "shielded" / "README.md").read_text()
+    assert json.loads((plain / "policy.json").read_text())["shield"] is None
+    assert "shield_actions`" not in (plain / "README.md").read_text()
+    trained = json.loads((exported["nearest-shield"][1] / "policy.json").read_text())
+    assert trained["shield"] == dict(SHIELD, trained_behind=True)
 
 
 def test_refusals_are_one_line_and_exit_code_2(exported, tmp_path, capsys):

@@ -4,6 +4,7 @@ alone, what it prevents, and how the commands that drive a trained policy take i
 from __future__ import annotations
 
 import cmath
+import json
 import math
 
 import jax
@@ -223,7 +224,7 @@ def test_training_behind_the_shield_gives_the_environment_the_shielded_actions(f
 
 def test_a_run_trained_behind_the_shield_keeps_it(tiny_ppo_config, tmp_path, capsys):
     """Its policies act behind the layer wherever they run (named so; ``evaluate --shield`` adds
-    nothing more), and ``export`` refuses it with one line and exit code 2."""
+    nothing more), and its export holds the layer."""
     from roverswarm import train
     from roverswarm.cli import main
     from roverswarm.config import with_options
@@ -236,6 +237,6 @@ def test_a_run_trained_behind_the_shield_keeps_it(tiny_ppo_config, tmp_path, cap
     rows = evaluate_run(tmp_path, episodes=10)
     assert [r["policy"] for r in rows] == ["random", "oracle", "mappo seed 0, shielded", "mappo seed 1, shielded"]
     assert evaluate_run(tmp_path, episodes=10, shield=True) == rows
-    assert main(["export", str(tmp_path), "--out", str(tmp_path / "export")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "trained behind the safety layer (--shield)" in err[0]
+    assert main(["export", str(tmp_path), "--out", str(tmp_path / "export")]) == 0
+    assert "with the safety layer" in " ".join(capsys.readouterr().out.split())
+    assert json.loads((tmp_path / "export" / "policy.json").read_text())["shield"]["trained_behind"]

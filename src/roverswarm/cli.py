@@ -171,13 +171,14 @@ def run_mission(cmd: MissionConfig) -> None:
 
 
 def run_export(cmd: ExportConfig) -> None:
-    result = export_run(cmd.run, cmd.out, cmd.seed)
+    result = export_run(cmd.run, cmd.out, cmd.seed, cmd.shield)
     checked = (
         "not checked against JAX (onnxruntime is not installed)"
         if result.difference is None
         else f"ONNX and JAX actions differ by at most {result.difference:.1e} on {CHECK_OBSERVATIONS} random layouts"
     )
-    Console().print(f"wrote {cmd.out} ({', '.join(result.files)}); {checked}")
+    layer = " with the safety layer" if result.meta["shield"] else ""
+    Console().print(f"wrote {cmd.out}{layer} ({', '.join(result.files)}); {checked}")
 
 
 COMMANDS: dict[str, tuple[type, Callable]] = {

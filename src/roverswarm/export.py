@@ -8,7 +8,8 @@ The export folder holds:
 - ``policy.json``: what the inputs and outputs mean (the view, its layout and order, shapes,
   what the run was trained for, the environment's constants);
 - ``observation.py``: the observation functions in NumPy alone (:mod:`roverswarm.export_numpy`),
-  to feed the model from a swarm's state;
+  to feed the model from a swarm's state, and the safety layer in NumPy, which a run trained
+  behind it (``train --shield``) or an ``export --shield`` applies to the model's actions;
 - ``README.md``: how to run it with ``onnxruntime`` and NumPy (:data:`SNIPPET`).
 
 Needs the ``export`` extra (``pip install -e ".[export]"``: ``onnx`` and ``onnxruntime``).
@@ -32,6 +33,7 @@ from roverswarm.env.scenarios import get_scenario, range_sizes
 from roverswarm.errors import UserError, require
 from roverswarm.learners import learner_family, offpolicy
 from roverswarm.runs import CHECKPOINT, Run, folder_lock
+from roverswarm.steering import FAILED_MARGIN, KEEP_OUT_MARGIN, SHIELD_STEPS, shield_actions
 from roverswarm.storage import atomic_write, trained_episodes
 
 CHECK_OBSERVATIONS = 256
@@ -49,6 +51,10 @@ class ExportConfig:
     """Export folder (policy.onnx, policy.json, observation.py, README.md)."""
     seed: int = 0
     """Which of the run's seeds to export."""
+    shield: bool = False
+    """Export the safety layer with the model (policy.json's `shield`; observation.py's
+    `shield_actions` applies it), for a run trained without it; a run trained behind it
+    (train --shield) always exports it."""
 
 
 @dataclass(frozen=True)
@@ -152,8 +158,19 @@ def _numbers(x) -> float | list:
     return np.asarray(x, np.float64).tolist()
 
 
-def describe(run: Run, seed: int, model) -> dict:
-    """``policy.json``: what the model's inputs and output mean, and what it was trained for."""
+def env_constants(params: EnvParams) -> dict:
+    """``policy.json``'s ``env``: the constants the NumPy observations and safety layer read."""
+    names = ("rover_radius", "observe_radius", "trap_radius", "dt", "damping", "mass", "sensitivity")
+    return {name: _numbers(getattr(params, name)) for name in names} | {"max_steps": params.max_steps}
+
+
+SHIELD = {"keep_out_margin": KEEP_OUT_MARGIN, "failed_margin": FAILED_MARGIN, "steps": SHIELD_STEPS}
+"""``policy.json``'s ``shield`` for an export with the safety layer: what the NumPy layer reads."""
+
+
+def describe(run: Run, seed: int, model, shield: bool) -> dict:
+    """``policy.json``: what the model's inputs and output mean, what it was trained for, and
+    the safety layer's constants if the export holds it (``shield``, else None)."""
     config, params = run.config, run.params
     view = view_of(config)
     if view["kind"] == "flat":
@@ -185,11 +202,8 @@ def describe(run: Run, seed: int, model) -> dict:
                 for p in trained_sizes(run)
             ],
         },
-        "env": {
-            name: _numbers(getattr(params, name))
-            for name in ("rover_radius", "observe_radius", "trap_radius", "dt", "damping", "mass", "sensitivity")
-        }
-        | {"max_steps": params.max_steps},
+        "env": env_constants(params),
+        "shield": dict(SHIELD, trained_behind=config.learner.shield) if shield else None,
         "not_included": ["critics and value networks", "exploration noise", "optimiser states"],
     }
 
@@ -218,9 +232,10 @@ def random_states(params: EnvParams, count: int, seed: int = 0) -> EnvState:
     )
 
 
-def check_model(run: Run, seed: int, model_bytes: bytes, count: int = CHECK_OBSERVATIONS) -> float | None:
+def check_model(run: Run, seed: int, meta: dict, model_bytes: bytes, count: int = CHECK_OBSERVATIONS) -> float | None:
     """Largest |ONNX - JAX| over the actions of ``count`` swarms of random layouts (the run's
-    largest trained size); None if onnxruntime is not installed."""
+    largest trained size), behind the NumPy and the JAX safety layer if ``meta`` holds it; None
+    if onnxruntime is not installed."""
     try:
         import onnxruntime
     except ImportError:
@@ -232,12 +247,26 @@ def check_model(run: Run, seed: int, model_bytes: bytes, count: int = CHECK_OBSE
     @jax.jit
     def views_and_actions(states, weights):
         views = view(states, params)
-        return views, family.act(acting, weights, views, None)
+        actions = family.act(acting, weights, views, None)
+        if meta["shield"]:
+            actions = jax.vmap(shield_actions, in_axes=(0, 0, None))(states, actions, params)
+        return views, actions
 
-    views, expected = views_and_actions(random_states(params, count), weights_of(run, seed))
+    states = random_states(params, count)
+    views, expected = views_and_actions(states, weights_of(run, seed))
     session = onnxruntime.InferenceSession(model_bytes, providers=["CPUExecutionProvider"])
     (actions,) = session.run(["actions"], model_inputs_of(views))
+    if meta["shield"]:
+        layer = export_numpy.shield_actions
+        actions = np.stack([layer(meta, a, *s) for a, s in zip(actions, zip(*_swarms(states)), strict=True)])
     return float(np.max(np.abs(actions - np.asarray(expected))))
+
+
+def _swarms(states: EnvState) -> tuple[np.ndarray, ...]:
+    """What the NumPy safety layer reads of a batch of states: rover positions, velocities,
+    trap positions and which rovers have failed."""
+    failed = np.asarray(states.time)[:, None] >= np.asarray(states.fail_step)
+    return np.asarray(states.rover_pos), np.asarray(states.rover_vel), np.asarray(states.trap_pos), failed
 
 
 SNIPPET = """\
@@ -246,25 +275,31 @@ import json
 import numpy as np
 import onnxruntime as ort
 
-from observation import model_inputs  # the NumPy observation functions beside the model
+from observation import model_inputs, shield_actions  # the NumPy functions beside the model
 
 meta = json.load(open("policy.json"))
 session = ort.InferenceSession("policy.onnx")
 size = meta["trained_for"]["sizes"][0]  # or any size, for a policy with "any_size": true
 n, p, t = size["rovers"], size["pois"], size["traps"]
 rng = np.random.default_rng(0)
-inputs = model_inputs(  # your state estimates, in the map's frame
-    meta,
-    rover_pos=rng.uniform(-1, 1, (n, 2)),
-    rover_vel=np.zeros((n, 2)),
-    poi_pos=rng.uniform(-1, 1, (p, 2)),
-    trap_pos=rng.uniform(-1, 1, (t, 2)),
-)
+rover_pos, rover_vel = rng.uniform(-1, 1, (n, 2)), np.zeros((n, 2))  # your state estimates, in the map's frame
+poi_pos, trap_pos = rng.uniform(-1, 1, (p, 2)), rng.uniform(-1, 1, (t, 2))
+inputs = model_inputs(meta, rover_pos, rover_vel, poi_pos, trap_pos)
 (actions,) = session.run(["actions"], inputs)  # [1, N, 2]: each rover's force in [-1, 1]^2
+if meta.get("shield"):  # exported with the safety layer: it turns actions headed into a crater or a rover
+    actions = shield_actions(meta, actions[0], rover_pos, rover_vel, trap_pos)[None]
 print(actions[0])
 """
 """Runs an exported policy with onnxruntime and NumPy alone (in the export folder); the
 same text is in docs/export.md, and a test runs it there."""
+
+
+LAYER = (
+    "The safety layer is exported with the model (`policy.json`: `shield`): apply `shield_actions` of "
+    "`observation.py` to the model's actions, as the snippet does. It turns any action whose velocity would "
+    "carry a rover into a crater or another rover within a few steps along the tangent of the obstacle's "
+    "keep-out circle; the policy was trained behind it, or evaluated behind it with `--shield`.\n\n"
+)
 
 
 def readme(meta: dict) -> str:
@@ -277,15 +312,17 @@ def readme(meta: dict) -> str:
         "with NumPy alone.\n\n"
         f"Inputs and output:\n\n{shapes}\n\n"
         f"View: {meta['view']['kind']} ({meta['view']['order']}).\n\n"
-        "Run it with `pip install onnxruntime numpy`, in this folder:\n\n"
+        + (LAYER if meta["shield"] else "")
+        + "Run it with `pip install onnxruntime numpy`, in this folder:\n\n"
         f"```python\n{SNIPPET}```\n"
     )
 
 
-def export_run(run_folder: str | Path, out: str | Path, seed: int = 0) -> Export:
+def export_run(run_folder: str | Path, out: str | Path, seed: int = 0, shield: bool = False) -> Export:
     """Export seed ``seed`` of the finished run in ``run_folder`` into folder ``out`` (see the
-    module docstring); :class:`UserError` for a folder that holds no finished run, a seed out
-    of range, or a policy that cannot be exported (an ensemble, or one trained behind the safety layer)."""
+    module docstring), with the safety layer if ``shield`` or if the run was trained behind it;
+    :class:`UserError` for a folder that holds no finished run, a seed out of range, or a
+    policy ensemble."""
     _onnx()
     run, out = Run(run_folder), Path(out)
     config = run.config
@@ -304,15 +341,10 @@ def export_run(run_folder: str | Path, out: str | Path, seed: int = 0) -> Export
         f"'{run.folder}' is a policy ensemble (--ensemble {config.learner.ensemble}: each rover draws one of its "
         "sub-policies per episode), which cannot be exported; export a run with --ensemble 1",
     )
-    require(
-        not config.learner.shield,
-        f"'{run.folder}' was trained behind the safety layer (--shield), which the ONNX model does not hold: "
-        "exported, it would act without it; export a run trained without --shield",
-    )
     actor, norm = weights_of(run, seed)
     doc = f"roverswarm {config.learner.algo} actor, seed {seed} of {run.folder}"
     model = policy_model(config, run.params, actor, norm, doc)
-    meta = describe(run, seed, model)
+    meta = describe(run, seed, model, shield or config.learner.shield)
     model.metadata_props.add(key="roverswarm", value=json.dumps(meta))
     model_bytes = model.SerializeToString()
     source = Path(export_numpy.__file__).read_text()
@@ -322,7 +354,7 @@ def export_run(run_folder: str | Path, out: str | Path, seed: int = 0) -> Export
         "observation.py": source,
         "README.md": readme(meta),
     }
-    difference = check_model(run, seed, model_bytes)
+    difference = check_model(run, seed, meta, model_bytes)
     files = {}
     with folder_lock(out):
         for name, content in contents.items():

@@ -1,10 +1,12 @@
 """roverswarm's observation functions in NumPy alone: what an exported policy
-(``roverswarm export``) reads, built from a swarm's state as a user's own estimates give it.
+(``roverswarm export``) reads, built from a swarm's state as a user's own estimates give it;
+and the safety layer (:func:`shield_actions`), for a policy exported with it.
 
 This file imports nothing but NumPy, so it runs where JAX is not installed: ``roverswarm
 export`` copies it beside the model as ``observation.py``. A test holds every function here
-to the package's JAX observation functions (``roverswarm.env.mars.observe``,
-``roverswarm.env.entities.observe_entities`` and ``nearest_entities``) on random states.
+to the package's JAX functions (``roverswarm.env.mars.observe``,
+``roverswarm.env.entities.observe_entities`` and ``nearest_entities``,
+``roverswarm.steering.shield_actions``) on random states.
 
 Shape legend: N rovers, P points of interest (POIs), T traps; every position and velocity is
 in the map's frame (x, y), as the environment's.
@@ -241,3 +243,52 @@ def model_inputs(meta: dict, rover_pos, rover_vel, poi_pos, trap_pos, observed=N
         counts = (len(own) - 1, len(np.asarray(poi_pos)), len(np.asarray(trap_pos)))
         own, tokens, mask = nearest_entities(own, tokens, mask, view["nearest"], counts, poi_order != "nearest")
     return {"own": own[None], "tokens": tokens[None], "mask": mask[None]}
+
+
+def shield_actions(meta: dict, actions, rover_pos, rover_vel, trap_pos, failed=None) -> np.ndarray:
+    """The safety layer (``--shield``) on one swarm's ``actions`` [N, 2], for an export that
+    holds it (``meta["shield"]``: its margins and look-ahead; ``meta["env"]``: the dynamics).
+
+    Each action is clipped to [-1, 1]; where the velocity it asks for would carry the rover,
+    within ``meta["shield"]["steps"]`` steps, into the keep-out circle of a trap or another
+    rover (their radii plus ``keep_out_margin``, or ``failed_margin`` round a failed rover),
+    the rover heads along that circle's tangent on the side its heading leans to, at the same
+    speed, and the action that gives that velocity (scaled down as a whole where it needs more
+    than a full action) replaces it. The rule is ``roverswarm.steering.shield_actions``'s,
+    obstacle by obstacle (the other rovers where they will be after this step, then the traps,
+    twice over), in float32 as there. ``failed`` [N] bool: a failed rover stands still.
+    Returns [N, 2] float32."""
+    env, rule = meta["env"], meta["shield"]
+    pos, vel, traps = _f32(rover_pos), _f32(rover_vel), _f32(trap_pos).reshape(-1, 2)
+    n, t = len(pos), len(traps)
+    failed = np.zeros(n, bool) if failed is None else np.asarray(failed, bool)
+    dt, decay = np.float32(env["dt"]), np.float32(1.0 - env["damping"])
+    gain = np.float32(env["sensitivity"] / env["mass"] * env["dt"])
+    clipped = np.clip(_f32(actions).reshape(n, 2), -1.0, 1.0)
+    next_pos = np.where(failed[:, None], pos, pos + vel * dt)
+    velocity = decay * vel + gain * clipped
+    speed = np.linalg.norm(velocity, axis=-1, keepdims=True)
+    reach = speed[:, 0] * dt * np.float32(rule["steps"])
+    others = other_rovers(n)
+    centres = np.concatenate([next_pos[others], np.broadcast_to(traps, (n, t, 2))], axis=1)
+    rovers = 2 * env["rover_radius"] + np.where(failed[others], rule["failed_margin"], rule["keep_out_margin"])
+    trap_keep_out = np.broadcast_to(_f32(env["trap_radius"]) + env["rover_radius"] + rule["keep_out_margin"], (t,))
+    keep_out = _f32(np.concatenate([rovers, np.broadcast_to(trap_keep_out, (n, t))], axis=1))
+    heading = velocity / np.maximum(speed, 1e-9)
+    turned = np.zeros(n, bool)
+    for k in list(range(centres.shape[1])) * 2:  # twice, so a later turn is checked against earlier obstacles
+        gap = centres[:, k] - next_pos
+        dist = np.linalg.norm(gap, axis=-1)
+        along = np.sum(heading * gap, axis=-1)
+        across = heading[:, 0] * gap[:, 1] - heading[:, 1] * gap[:, 0]
+        blocked = (along > 0) & (np.abs(across) < keep_out[:, k]) & (along < reach + keep_out[:, k])
+        angle = np.arcsin(np.clip(keep_out[:, k] / np.maximum(dist, 1e-9), 0.0, 1.0))
+        angle = np.where(across > 0, -angle, angle)
+        unit = gap / np.maximum(dist, 1e-9)[:, None]
+        cos, sin = np.cos(angle), np.sin(angle)
+        tangent = np.stack([cos * unit[:, 0] - sin * unit[:, 1], sin * unit[:, 0] + cos * unit[:, 1]], axis=-1)
+        heading = np.where(blocked[:, None], tangent, heading)
+        turned |= blocked
+    steered = (heading * speed - decay * vel) / gain
+    steered = steered * np.minimum(1.0, 1.0 / np.maximum(np.max(np.abs(steered), axis=-1, keepdims=True), 1e-9))
+    return _f32(np.where(turned[:, None], steered, clipped))
