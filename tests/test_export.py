@@ -197,6 +197,17 @@ def test_the_numpy_safety_layer_equals_the_jax_one(n):
     assert np.abs(np.stack(other) - want).max() > 1e-3
 
 
+def test_the_numpy_safety_layer_refuses_an_export_without_it_and_misshapen_actions():
+    params = get_scenario("paper-3")
+    state = jax.tree.map(lambda x: x[0], random_states(params, 1))
+    swarm = (state.rover_pos, state.rover_vel, state.trap_pos)
+    plain = {"env": env_constants(params), "shield": None}
+    with pytest.raises(ValueError, match="holds no safety layer"):
+        export_numpy.shield_actions(plain, np.zeros((3, 2)), *swarm)
+    with pytest.raises(ValueError, match=r"actions must be \[N, 2\] or \[1, N, 2\] for 3 rovers, got shape \(2, 3\)"):
+        export_numpy.shield_actions(dict(plain, shield=SHIELD), np.zeros((2, 3)), *swarm)
+
+
 # ----------------------------------------------------------------------------- ONNX against JAX
 
 
@@ -294,11 +305,17 @@ def test_the_docs_snippet_is_the_exports(exported):
 
 @pytest.mark.parametrize("kind", ["ddpg-shared", "entity", "nearest-shield"])
 def test_the_docs_snippet_runs_with_numpy_and_onnxruntime_alone(exported, kind, tmp_path):
-    """Behind the layer too (a run trained with it): the snippet's actions are the JAX policy's
-    turned by the JAX layer."""
+    """Behind the layer too (a run trained with it, the snippet's layout crowded into a tenth of
+    the map so that the layer turns a rover): the snippet's actions are the JAX policy's turned
+    by the JAX layer."""
     run, export = exported[kind]
+    snippet = docs_snippet()
+    shielded = Run(run).config.learner.shield
+    if shielded:
+        assert snippet.count("rng.uniform(-1, 1,") == 3
+        snippet = snippet.replace("rng.uniform(-1, 1,", "rng.uniform(-0.3, 0.3,")
     probe = (
-        docs_snippet()
+        snippet
         + "\nimport sys\nnp.savez(sys.argv[1], actions=actions, rover_pos=rover_pos, rover_vel=rover_vel, "
         + "poi_pos=poi_pos, trap_pos=trap_pos, **inputs)\n"
         + "print(sorted({m.split('.')[0] for m in sys.modules} & {'jax', 'jaxlib', 'flax', 'roverswarm'}))\n"
@@ -316,10 +333,12 @@ def test_the_docs_snippet_runs_with_numpy_and_onnxruntime_alone(exported, kind, 
     actions = saved.pop("actions")
     swarm = {name: saved.pop(name).astype(np.float32) for name in ("rover_pos", "rover_vel", "poi_pos", "trap_pos")}
     want = jax_actions(run, saved)
-    if Run(run).config.learner.shield:
+    if shielded:
         n, p = len(swarm["rover_pos"]), len(swarm["poi_pos"])
         state = EnvState(**swarm, observed=np.zeros(p, bool), time=np.int32(0), fail_step=np.full(n, NEVER, np.int32))
+        model = want
         want = np.asarray(shield_actions(state, want[0], trained_sizes(Run(run))[0]))[None]
+        assert np.abs(want - np.clip(model, -1, 1)).max() > 1e-2  # the layer turned a rover
     np.testing.assert_allclose(actions, want, atol=1e-5)
 
 
@@ -349,10 +368,13 @@ def test_export_shield_adds_the_layer_to_a_run_trained_without_it(exported, tmp_
 
     run, plain = exported["mappo"]
     assert main(["export", str(run), "--out", str(tmp_path / "shielded"), "--shield"]) == 0
-    assert "with the safety layer" in " ".join(capsys.readouterr().out.split())
+    out = " ".join(capsys.readouterr().out.split())
+    assert "with the safety layer" in out and "(both behind the safety layer)" in out
+    assert float(re.search(r"differ by at most (\S+) on", out)[1]) < 1e-5
     meta = json.loads((tmp_path / "shielded" / "policy.json").read_text())
     assert meta["shield"] == dict(SHIELD, trained_behind=False)
     assert "apply `shield_actions`" in (tmp_path / "shielded" / "README.md").read_text()
+    assert "trained without it (`export --shield`)" in (tmp_path / "shielded" / "README.md").read_text()
     assert json.loads((plain / "policy.json").read_text())["shield"] is None
     assert "shield_actions`" not in (plain / "README.md").read_text()
     trained = json.loads((exported["nearest-shield"][1] / "policy.json").read_text())

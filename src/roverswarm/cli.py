@@ -178,7 +178,8 @@ def run_export(cmd: ExportConfig) -> None:
         else f"ONNX and JAX actions differ by at most {result.difference:.1e} on {CHECK_OBSERVATIONS} random layouts"
     )
     layer = " with the safety layer" if result.meta["shield"] else ""
-    Console().print(f"wrote {cmd.out}{layer} ({', '.join(result.files)}); {checked}")
+    behind = " (both behind the safety layer)" if result.meta["shield"] and result.difference is not None else ""
+    Console().print(f"wrote {cmd.out}{layer} ({', '.join(result.files)}); {checked}{behind}")
 
 
 COMMANDS: dict[str, tuple[type, Callable]] = {

@@ -6,7 +6,8 @@ The export folder holds:
   observation normaliser of ``--normalize-obs`` inside it; inputs in the view the run was
   trained on (:mod:`roverswarm.export_onnx` writes the graph);
 - ``policy.json``: what the inputs and outputs mean (the view, its layout and order, shapes,
-  what the run was trained for, the environment's constants);
+  what the run was trained for, the environment's constants, the safety layer's constants
+  under ``shield`` or null);
 - ``observation.py``: the observation functions in NumPy alone (:mod:`roverswarm.export_numpy`),
   to feed the model from a swarm's state, and the safety layer in NumPy, which a run trained
   behind it (``train --shield``) or an ``export --shield`` applies to the model's actions;
@@ -180,7 +181,7 @@ def describe(run: Run, seed: int, model, shield: bool) -> dict:
         for value in (*model.graph.input, *model.graph.output)
     }
     return {
-        "format": "roverswarm onnx policy 1",
+        "format": "roverswarm onnx policy 2",  # 2: "shield", the safety layer the actions pass
         "run": str(run.folder),
         "seed": seed,
         "algo": config.learner.algo,
@@ -275,7 +276,7 @@ import json
 import numpy as np
 import onnxruntime as ort
 
-from observation import model_inputs, shield_actions  # the NumPy functions beside the model
+from observation import model_inputs  # the NumPy observation functions beside the model
 
 meta = json.load(open("policy.json"))
 session = ort.InferenceSession("policy.onnx")
@@ -287,19 +288,24 @@ poi_pos, trap_pos = rng.uniform(-1, 1, (p, 2)), rng.uniform(-1, 1, (t, 2))
 inputs = model_inputs(meta, rover_pos, rover_vel, poi_pos, trap_pos)
 (actions,) = session.run(["actions"], inputs)  # [1, N, 2]: each rover's force in [-1, 1]^2
 if meta.get("shield"):  # exported with the safety layer: it turns actions headed into a crater or a rover
-    actions = shield_actions(meta, actions[0], rover_pos, rover_vel, trap_pos)[None]
+    from observation import shield_actions
+
+    actions = shield_actions(meta, actions, rover_pos, rover_vel, trap_pos)[None]
 print(actions[0])
 """
 """Runs an exported policy with onnxruntime and NumPy alone (in the export folder); the
 same text is in docs/export.md, and a test runs it there."""
 
 
-LAYER = (
-    "The safety layer is exported with the model (`policy.json`: `shield`): apply `shield_actions` of "
-    "`observation.py` to the model's actions, as the snippet does. It turns any action whose velocity would "
-    "carry a rover into a crater or another rover within a few steps along the tangent of the obstacle's "
-    "keep-out circle; the policy was trained behind it, or evaluated behind it with `--shield`.\n\n"
-)
+def layer_text(shield: dict) -> str:
+    """The export README's paragraph on the safety layer it holds."""
+    how = "was trained behind it" if shield["trained_behind"] else "was trained without it (`export --shield`)"
+    return (
+        "The safety layer is exported with the model (`policy.json`: `shield`): apply `shield_actions` of "
+        "`observation.py` to the model's actions, as the snippet does. It turns any action whose velocity would "
+        "carry a rover into a crater or another rover within a few steps along the tangent of the obstacle's "
+        f"keep-out circle. The policy {how}.\n\n"
+    )
 
 
 def readme(meta: dict) -> str:
@@ -312,7 +318,7 @@ def readme(meta: dict) -> str:
         "with NumPy alone.\n\n"
         f"Inputs and output:\n\n{shapes}\n\n"
         f"View: {meta['view']['kind']} ({meta['view']['order']}).\n\n"
-        + (LAYER if meta["shield"] else "")
+        + (layer_text(meta["shield"]) if meta["shield"] else "")
         + "Run it with `pip install onnxruntime numpy`, in this folder:\n\n"
         f"```python\n{SNIPPET}```\n"
     )

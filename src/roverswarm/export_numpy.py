@@ -257,10 +257,14 @@ def shield_actions(meta: dict, actions, rover_pos, rover_vel, trap_pos, failed=N
     than a full action) replaces it. The rule is ``roverswarm.steering.shield_actions``'s,
     obstacle by obstacle (the other rovers where they will be after this step, then the traps,
     twice over), in float32 as there. ``failed`` [N] bool: a failed rover stands still.
-    Returns [N, 2] float32."""
+    ``actions`` [N, 2] or the model's [1, N, 2]. Returns [N, 2] float32."""
+    if not meta.get("shield"):
+        raise ValueError("this export holds no safety layer (policy.json: shield); export it with --shield")
     env, rule = meta["env"], meta["shield"]
     pos, vel, traps = _f32(rover_pos), _f32(rover_vel), _f32(trap_pos).reshape(-1, 2)
     n, t = len(pos), len(traps)
+    if np.shape(actions) not in ((n, 2), (1, n, 2)):
+        raise ValueError(f"actions must be [N, 2] or [1, N, 2] for {n} rovers, got shape {np.shape(actions)}")
     failed = np.zeros(n, bool) if failed is None else np.asarray(failed, bool)
     dt, decay = np.float32(env["dt"]), np.float32(1.0 - env["damping"])
     gain = np.float32(env["sensitivity"] / env["mass"] * env["dt"])

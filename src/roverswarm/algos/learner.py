@@ -143,8 +143,8 @@ class AlgoConfig:
     rover's action asks for would carry it, within a few steps, into a trap's or another
     rover's keep-out circle, the environment gets the action turned along the circle's tangent
     (the policy learns from its own action, the layer being part of the world it acts in).
-    Every evaluation and mission of the run keeps the layer; `export` refuses such a run (the
-    model would act without it). MADDPG, DDPG, MAPPO and IPPO."""
+    Every evaluation and mission of the run keeps the layer, and its export holds it (in NumPy,
+    beside the ONNX model). MADDPG, DDPG, MAPPO and IPPO."""
 
 
 @struct.dataclass
