@@ -65,9 +65,10 @@ PRESET = HERE / "any-size-uncrossed.csv"
 SHIELDED = {
     "the preset behind the safety layer": HERE / "any-size-shield.csv",
     "trained behind the safety layer (60k)": HERE / "any-size-shield-trained.csv",
+    "trained behind it with failures (60k)": HERE / "any-size-shield-fail.csv",
 }
-"""The tables behind the safety layer: the preset's run evaluated behind it, and the run trained
-behind it. The trap contacts figure (:data:`CONTACTS`, redrawn when either is written) sets
+"""The tables behind the safety layer: the preset's run evaluated behind it, and the runs trained
+behind it (without and with rover failures). The trap contacts figure (:data:`CONTACTS`, redrawn when either is written) sets
 every one that exists beside :data:`PRESET` and the oracle."""
 CONTACTS = HERE / "any-size-shield-contacts.png"
 MISSION = HERE.parents[2] / "examples" / "mission.yaml"
