@@ -30,7 +30,7 @@ from roverswarm.config import (
 )
 from roverswarm.env import get_scenario
 from roverswarm.env.entities import EntityView, nearest_entities, observe_entities
-from roverswarm.env.mars import NEVER, EnvState, observe, reset, step_env
+from roverswarm.env.mars import NEVER, EnvState, failed_rovers, observe, reset, step_env
 from roverswarm.export import SHIELD, SNIPPET, env_constants, export_run, random_states, trained_sizes
 from roverswarm.learners import learner_family
 from roverswarm.learners.base import Runner
@@ -232,6 +232,7 @@ def episodes(run: Path, export: Path, params) -> dict:
                 actions = jax_act(state)
             else:
                 s = jax.device_get(state)
+                failed = np.asarray(jax.vmap(failed_rovers)(state))
                 views = [
                     export_numpy.model_inputs(
                         meta,
@@ -240,7 +241,7 @@ def episodes(run: Path, export: Path, params) -> dict:
                         s.poi_pos[e],
                         s.trap_pos[e],
                         s.observed[e],
-                        s.time[e] >= s.fail_step[e],
+                        failed[e],
                     )
                     for e in range(EPISODES)
                 ]
@@ -252,7 +253,7 @@ def episodes(run: Path, export: Path, params) -> dict:
                     actions = np.stack(
                         [
                             export_numpy.shield_actions(
-                                meta, a, s.rover_pos[e], s.rover_vel[e], s.trap_pos[e], s.time[e] >= s.fail_step[e]
+                                meta, a, s.rover_pos[e], s.rover_vel[e], s.trap_pos[e], failed[e]
                             )
                             for e, a in enumerate(actions)
                         ]

@@ -29,7 +29,7 @@ import tyro
 from roverswarm import export_numpy
 from roverswarm.algos.normalize import std
 from roverswarm.config import TrainConfig
-from roverswarm.env.mars import NEVER, EnvParams, EnvState, observation_size, observe
+from roverswarm.env.mars import NEVER, EnvParams, EnvState, failed_rovers, observation_size, observe
 from roverswarm.env.scenarios import get_scenario, range_sizes
 from roverswarm.errors import UserError, require
 from roverswarm.learners import learner_family, offpolicy
@@ -266,7 +266,7 @@ def check_model(run: Run, seed: int, meta: dict, model_bytes: bytes, count: int 
 def _swarms(states: EnvState) -> tuple[np.ndarray, ...]:
     """What the NumPy safety layer reads of a batch of states: rover positions, velocities,
     trap positions and which rovers have failed."""
-    failed = np.asarray(states.time)[:, None] >= np.asarray(states.fail_step)
+    failed = np.asarray(jax.vmap(failed_rovers)(states))
     return np.asarray(states.rover_pos), np.asarray(states.rover_vel), np.asarray(states.trap_pos), failed
 
 

@@ -68,8 +68,9 @@ SHIELDED = {
     "trained behind it with failures (60k)": HERE / "any-size-shield-fail.csv",
 }
 """The tables behind the safety layer: the preset's run evaluated behind it, and the runs trained
-behind it (without and with rover failures). The trap contacts figure (:data:`CONTACTS`, redrawn when either is written) sets
-every one that exists beside :data:`PRESET` and the oracle."""
+behind it (without and with rover failures). The trap contacts figure (:data:`CONTACTS`,
+redrawn when any of them is written) sets every one that exists beside :data:`PRESET` and the
+oracle."""
 CONTACTS = HERE / "any-size-shield-contacts.png"
 MISSION = HERE.parents[2] / "examples" / "mission.yaml"
 """The example mission of ``mission stress``, for this script and the ones beside it."""
