@@ -501,7 +501,7 @@ def test_one_policy_learns_two_sizes_and_beats_random_by_a_wide_margin(tmp_path)
 def test_a_size_agnostic_run_drives_a_mission_of_another_size(anysize_run, tmp_path):
     """The mission file's swarm (a layout of its own) is driven by the policy trained on
     paper-2..4, with and without a rover failure."""
-    from roverswarm.mission import stress_mission
+    from roverswarm.stress import stress_mission
 
     rows = stress_mission(
         Path(__file__).parents[1] / "examples" / "survey.yaml", str(anysize_run), tmp_path, episodes=20
@@ -534,7 +534,7 @@ def test_evaluate_and_mission_stress_drive_the_policy_behind_the_shield(anysize_
         "mappo agents of seeds 1/0/1, shielded",
     ]
 
-    from roverswarm.mission import stress_mission
+    from roverswarm.stress import stress_mission
 
     survey = Path(__file__).parents[1] / "examples" / "survey.yaml"
     rows = stress_mission(survey, str(anysize_run), tmp_path, episodes=20, shield=True)

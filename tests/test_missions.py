@@ -16,10 +16,11 @@ from roverswarm.cli import main
 from roverswarm.env.mars import NEVER, EnvParams, observe_radii, reset, step_env
 from roverswarm.env.missions import MAX_BYTES, MAX_ENTRIES, load_mission, parse_mission
 from roverswarm.errors import UserError
-from roverswarm.mission import load_policy, parse_failures, run_mission, stress_mission
+from roverswarm.mission import load_policy, parse_failures, run_mission
 from roverswarm.oracle import OraclePlan, oracle_goals
 from roverswarm.policies import ORACLE, RANDOM, Policy
 from roverswarm.rollout import EpisodeStats, MissionStats, Rollout, rollout
+from roverswarm.stress import stress_mission
 
 EXAMPLES = Path(__file__).parent.parent / "examples"
 
@@ -408,6 +409,64 @@ def test_mission_stress_reports_both_conditions_for_policy_and_oracle(tmp_path):
     assert random["no failure"]["success"] < 0.5 < oracle["one rover fails"]["success"]
     assert list(csv.DictReader(open(tmp_path / "stress.csv")))[3]["policy"] == "oracle"
     assert imageio.imread(tmp_path / "stress.png").std() > 10
+
+
+def _failures_by_hand(key, finish: np.ndarray, n: int, failures: int) -> np.ndarray:
+    """random_failures written as a loop: failure j takes the pick-th of the rovers still
+    working, from the keys that random_failures documents."""
+    fail_step = np.full((len(finish), n), NEVER, np.int32)
+    working = [list(range(n)) for _ in finish]
+    for j in range(failures):
+        k_rover, k_when = jax.random.split(key if j == 0 else jax.random.fold_in(key, j))
+        pick = np.asarray(jax.random.randint(k_rover, (len(finish),), 0, n - j))
+        when = np.asarray(jax.random.uniform(k_when, (len(finish),)))
+        for e in range(len(finish)):
+            fail_step[e, working[e].pop(pick[e])] = int(np.floor(when[e] * finish[e]))
+    return fail_step
+
+
+def test_random_failures_draw_distinct_rovers_uniformly_before_the_finish():
+    """K failures per episode: K distinct rovers, each pair of rovers as likely as any other
+    (4000 episodes, 5 rovers, K = 2: each of the 10 pairs 10% +- 1.5 points), every step before
+    the episode's finish; equal to a plain loop over episodes; one failure drawn exactly as
+    before --failures existed (one randint and one uniform from the key's split)."""
+    from roverswarm.stress import random_failures
+
+    key, n = jax.random.PRNGKey(3), 5
+    finish = np.asarray(jax.random.randint(jax.random.PRNGKey(4), (4000,), 1, 40))
+    for failures in (1, 2, 4):
+        fail_step = random_failures(key, finish, n, failures)
+        np.testing.assert_array_equal(fail_step, _failures_by_hand(key, finish, n, failures))
+        failed = fail_step != NEVER
+        assert np.all(failed.sum(axis=1) == failures)
+        assert np.all(fail_step[failed] < np.repeat(finish, failures)) and np.all(fail_step[failed] >= 0)
+    k_rover, k_when = jax.random.split(key)
+    one = random_failures(key, finish, n)
+    rover = np.asarray(jax.random.randint(k_rover, (len(finish),), 0, n))
+    np.testing.assert_array_equal(one.argmin(axis=1), rover)
+    when = np.floor(np.asarray(jax.random.uniform(k_when, (len(finish),))) * finish)
+    np.testing.assert_array_equal(one.min(axis=1), when)
+    pairs = np.unique(random_failures(key, finish, n, 2) != NEVER, axis=0, return_counts=True)[1]
+    assert len(pairs) == 10 and np.all(np.abs(pairs / len(finish) - 0.1) < 0.015), pairs
+
+
+def test_mission_stress_with_two_failures_and_a_refused_count(tmp_path, capsys):
+    """``--failures 2`` on the example mission: the oracle, left with one rover of three,
+    finishes less often than with one failure (the same episodes' starts; failures drawn
+    alike); the rows say how many rovers failed. ``--failures 3`` leaves no rover: one line,
+    exit code 2, nothing written."""
+    mission = EXAMPLES / "mission.yaml"
+    one = {r["condition"]: r for r in stress_mission(mission, "oracle", tmp_path / "one", episodes=60)}
+    two = {r["condition"]: r for r in stress_mission(mission, "oracle", tmp_path / "two", episodes=60, failures=2)}
+    assert list(two) == ["no failure", "2 rovers fail"]
+    assert two["no failure"] == one["no failure"]
+    assert two["2 rovers fail"]["success"] < one["one rover fails"]["success"] - 0.1, (one, two)
+    assert two["2 rovers fail"]["pois_observed"] < one["one rover fails"]["pois_observed"]
+    assert "# Mission 'jezero-delta': 2 rovers fail" in (tmp_path / "two" / "stress.md").read_text()
+    assert main(["mission", "stress", str(mission), "--failures", "3", "--out", str(tmp_path / "three")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "--failures must be in [1, 2] for 3 rovers (one must keep working), got 3" in err
+    assert not (tmp_path / "three").exists()
 
 
 def test_train_on_a_mission_then_run_the_policy_and_refuse_a_mismatch(tiny_config, tmp_path):

@@ -163,8 +163,17 @@ def run_mission(cmd: MissionConfig) -> None:
         console.print(result.files["metrics.md"].read_text(), markup=False)
         console.print(f"wrote {', '.join(str(p) for p in result.files.values())}")
     else:
-        rows = mission.stress_mission(
-            action.mission, action.policy, action.out, action.episodes, action.seed, action.policy_seed, action.shield
+        from roverswarm.stress import stress_mission
+
+        rows = stress_mission(
+            action.mission,
+            action.policy,
+            action.out,
+            action.episodes,
+            action.seed,
+            action.policy_seed,
+            action.shield,
+            action.failures,
         )
         console.print(mission.markdown_table(list(rows[0]), [list(r.values()) for r in rows]), markup=False)
         console.print(f"wrote {action.out / 'stress.md'}, stress.csv and stress.png")

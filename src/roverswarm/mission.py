@@ -1,6 +1,7 @@
-"""Running a swarm on a mission: routes, an animation and mission metrics; failure stress tests.
+"""Running a swarm on a mission: routes, an animation and mission metrics.
 
-``roverswarm mission run`` and ``roverswarm mission stress`` as functions. A policy is
+``roverswarm mission run`` as a function, and the mission commands' configs (``mission
+stress``, the failure stress test, is :mod:`roverswarm.stress`). A policy is
 ``oracle``, ``random``, or a run folder of ``roverswarm train``; a trained policy runs on any
 mission with the numbers of rovers, POIs and traps it was trained for (the positions may
 differ: observations are relative).
@@ -16,7 +17,6 @@ from typing import Annotated, Literal, Union
 import jax
 import numpy as np
 import tyro
-from matplotlib.figure import Figure
 
 from roverswarm import runs
 from roverswarm.animation import episode_frames
@@ -25,7 +25,7 @@ from roverswarm.env.missions import Mission, load_mission
 from roverswarm.env.render import FrameRenderer, save_animation
 from roverswarm.errors import require
 from roverswarm.limits import check_seed
-from roverswarm.policies import ORACLE, Policy
+from roverswarm.policies import Policy
 from roverswarm.rollout import MissionStats, Rollout, rollout
 from roverswarm.runs import folder_lock, write_csv
 
@@ -59,8 +59,8 @@ class MissionRunConfig:
 
 @dataclass(frozen=True)
 class MissionStressConfig:
-    """Many episodes with one random rover failing at a random step: how success and time to
-    observe all degrade, for the policy beside the oracle."""
+    """Many episodes with one random rover (or --failures of them) failing at a random step:
+    how success and time to observe all degrade, for the policy beside the oracle."""
 
     mission: tyro.conf.Positional[Path]
     """Mission file (YAML or JSON)."""
@@ -78,6 +78,10 @@ class MissionStressConfig:
     """Drive the policy behind the safety layer: each rover's action turned along the tangent
     of any trap or other rover it would reach within a few steps (with --policy oracle, the
     oracle too; the oracle row beside it runs as it is)."""
+    failures: int = 1
+    """Rovers that fail in each failure episode: distinct, drawn uniformly, each at its own
+    random step before the swarm would have finished without failures; at most the mission's
+    rovers less one."""
 
 
 @dataclass(frozen=True)
@@ -155,7 +159,7 @@ def _fmt(value: object) -> str:
     return str(value)
 
 
-def _write_rows(rows: list[dict[str, object]], path: Path) -> None:
+def write_rows(rows: list[dict[str, object]], path: Path) -> None:
     """CSV with NaN (never observed, never completed) as an empty cell."""
     write_csv(path, [{k: ("" if isinstance(v, float) and np.isnan(v) else v) for k, v in row.items()} for row in rows])
 
@@ -296,120 +300,10 @@ def run_mission(
             for t in range(data.rover_pos.shape[1])
             for i, (x, y) in enumerate(data.rover_pos[e, t])
         ]
-        _write_rows(trajectory, files["trajectories.csv"])
-        _write_rows(_metrics_rows(stats, mission), files["metrics.csv"])
+        write_rows(trajectory, files["trajectories.csv"])
+        write_rows(_metrics_rows(stats, mission), files["metrics.csv"])
         files["metrics.md"].write_text(mission_report(stats, mission, policy.name, fail_step))
         title = f"{mission.name}: {policy.name}"
         _routes_png(data, mission, stats, fail_step, files["routes.png"], title)
         save_animation(episode_frames(data, mission.params, 0, title).frames, files[f"mission.{animation}"])
         return MissionResult(stats=stats, files=files)
-
-
-# ----------------------------------------------------------------------------- stress
-
-
-def random_failures(key: jax.Array, finish: np.ndarray, num_rovers: int) -> np.ndarray:
-    """[E, N] fail steps: in episode e one rover, uniform, fails at a uniform step in
-    [0, finish[e]), before the mission would be complete (a later failure changes nothing)."""
-    k_rover, k_when = jax.random.split(key)
-    episodes = len(finish)
-    rover = np.asarray(jax.random.randint(k_rover, (episodes,), 0, num_rovers))
-    when = np.asarray(jax.random.uniform(k_when, (episodes,)))
-    fail_step = np.full((episodes, num_rovers), NEVER, np.int32)
-    fail_step[np.arange(episodes), rover] = np.floor(when * finish).astype(np.int32)
-    return fail_step
-
-
-def stress_rows(
-    policies: list[Policy], mission: Mission, episodes: int, seed: int
-) -> tuple[list[dict[str, object]], dict]:
-    """For each policy, ``episodes`` episodes without failure, then the same episodes (same
-    starts and keys) with one random rover failing at a random step before that policy's
-    episode was complete (or before its end, if it never was). Rover and relative time are
-    drawn once, shared by all policies. Returns the summary rows and, per policy, (failure
-    time as a fraction of the time to complete [E], success [E]) for the plot."""
-    key = jax.random.PRNGKey(seed)
-    rows, curves = [], {}
-    for policy in policies:
-        clean = MissionStats.of(rollout(policy, key, mission.params, episodes))
-        finish = np.where(clean.success, clean.time_to_all, mission.params.max_steps)
-        fail_step = random_failures(jax.random.fold_in(key, 1), finish, mission.params.num_rovers)
-        failed = MissionStats.of(rollout(policy, key, mission.params, episodes, fail_step=fail_step))
-        for condition, stats in (("no failure", clean), ("one rover fails", failed)):
-            rows.append({"policy": policy.name, "condition": condition, **stats.summary()})
-        curves[policy.name] = (fail_step.min(axis=1) / np.maximum(finish, 1), failed.success)
-    return rows, curves
-
-
-def _stress_png(curves: dict, rows: list[dict[str, object]], mission: Mission, path: Path) -> None:
-    """Success rate against when the rover failed (as a fraction of the time the policy needs
-    without failure), one line per policy, with its success without failure dashed."""
-    figure = Figure(figsize=(7, 5), dpi=100)
-    ax = figure.add_subplot()
-    edges = np.linspace(0.0, 1.0, 11)
-    centres = (edges[:-1] + edges[1:]) / 2
-    for (name, (when, success)), color in zip(curves.items(), ("#1f77b4", "#ff7f0e", "#2ca02c")):
-        which = np.clip(np.digitize(when, edges) - 1, 0, len(centres) - 1)
-        rate = [success[which == b].mean() if np.any(which == b) else np.nan for b in range(len(centres))]
-        ax.plot(centres, rate, marker="o", color=color, label=f"{name}: one rover fails")
-        baseline = next(r["success"] for r in rows if r["policy"] == name and r["condition"] == "no failure")
-        ax.axhline(baseline, color=color, ls="--", lw=1, label=f"{name}: no failure")
-    ax.set_xlabel("when the rover fails, as a fraction of the time the swarm needs without failure")
-    ax.set_ylabel("mission success (all POIs observed)")
-    ax.set_ylim(-0.05, 1.05)
-    ax.set_title(f"Mission '{mission.name}': redundancy under a rover failure")
-    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.15), ncol=2)
-    figure.tight_layout()
-    figure.savefig(path)
-
-
-def stress_mission(
-    mission_path: str | Path,
-    policy_spec: str,
-    out: str | Path,
-    episodes: int = 500,
-    seed: int = 0,
-    policy_seed: int = 0,
-    shield: bool = False,
-) -> list[dict[str, object]]:
-    """``mission stress``: the policy beside the oracle, without and with a random rover
-    failure; writes stress.csv, stress.md and stress.png into ``out``. Returns the rows."""
-    require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
-    check_seed(seed)
-    mission = load_mission(mission_path)
-    policy = load_policy(policy_spec, mission, policy_seed, shield)
-    policies = [policy] if policy.name == ORACLE.name else [policy, ORACLE]
-    rows, curves = stress_rows(policies, mission, episodes, seed)
-    out = Path(out)
-    with folder_lock(out):
-        _write_rows(rows, out / "stress.csv")
-        header = [
-            "policy",
-            "condition",
-            "success",
-            "time to observe all (steps)",
-            "POIs observed",
-            "collisions",
-            "trap contacts",
-        ]
-        body = [
-            [
-                r["policy"],
-                r["condition"],
-                f"{r['success']:.0%}",
-                r["time_to_all"],
-                r["pois_observed"],
-                r["collisions"],
-                r["trap_contacts"],
-            ]
-            for r in rows
-        ]
-        (out / "stress.md").write_text(
-            f"# Mission '{mission.name}': one rover fails\n\n{episodes} episodes per row, seed {seed}. "
-            "In the failure rows one rover, drawn uniformly, stops for good at a step drawn uniformly before the "
-            "policy's own time to observe all POIs in that episode without failure (before the episode's end if it "
-            "never does): a later failure would change nothing. Time to observe all is the mean over successful "
-            "episodes.\n\n" + markdown_table(header, body)
-        )
-        _stress_png(curves, rows, mission, out / "stress.png")
-    return rows

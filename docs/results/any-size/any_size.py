@@ -209,7 +209,7 @@ def stress(run: Path, seeds: int, episodes: int, shield: bool = False) -> list[d
     """``mission stress`` of the example mission for every seed's policy (and the oracle once):
     success, POIs observed and contacts without and with one random rover failure (``shield``:
     the policies behind the safety layer)."""
-    from roverswarm.mission import stress_mission
+    from roverswarm.stress import stress_mission
 
     rows = []
     for seed in range(seeds):

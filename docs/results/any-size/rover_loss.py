@@ -34,10 +34,10 @@ from roverswarm.env import get_scenario
 from roverswarm.env.mars import NEVER, observe_radii
 from roverswarm.env.missions import load_mission
 from roverswarm.jaxcache import enable_compilation_cache
-from roverswarm.mission import random_failures
 from roverswarm.rollout import MissionStats, Rollout, rollout
 from roverswarm.runs import Run, load_policy
 from roverswarm.steering import FAILED_MARGIN
+from roverswarm.stress import random_failures
 
 
 def mission_failures(spec: str, seed: int, episodes: int, shield: bool = False) -> None:

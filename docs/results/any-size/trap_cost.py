@@ -29,11 +29,11 @@ from roverswarm.env import get_scenario
 from roverswarm.env.missions import load_mission
 from roverswarm.experiments.sweep import read_table
 from roverswarm.jaxcache import enable_compilation_cache
-from roverswarm.mission import stress_rows
 from roverswarm.oracle import oracle_actions
 from roverswarm.policies import ORACLE, RANDOM, Policy
 from roverswarm.rollout import normalized_score, rollout
 from roverswarm.storage import atomic_write
+from roverswarm.stress import stress_rows
 
 HERE = Path(__file__).resolve().parent
 

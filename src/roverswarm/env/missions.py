@@ -258,7 +258,9 @@ def read_mission_text(path: str | Path) -> str:
     require(size <= MAX_BYTES, f"mission file '{path}' has {size} bytes; at most {MAX_BYTES} are read")
     with open(path, "rb") as f:
         data = f.read(MAX_BYTES + 1)  # never more, even if the file grew since
-    require(len(data) <= MAX_BYTES, f"mission file '{path}' has more than {MAX_BYTES} bytes; at most {MAX_BYTES} are read")
+    require(
+        len(data) <= MAX_BYTES, f"mission file '{path}' has more than {MAX_BYTES} bytes; at most {MAX_BYTES} are read"
+    )
     try:
         return data.decode("utf-8").replace("\r\n", "\n").replace("\r", "\n")  # as read_text: universal newlines
     except UnicodeDecodeError as error:
