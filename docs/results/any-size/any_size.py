@@ -142,6 +142,7 @@ def setting(config: TrainConfig) -> str:
     limit = f" up to {config.fail_max_rovers} rovers" if config.fail_max_rovers else ""
     extra = [f"fail {config.fail_rate:g}{limit}"] * (config.fail_rate > 0)
     extra += [f"shaping {config.learner.unobserved_shaping:g}"] * (config.learner.unobserved_shaping > 0)
+    extra += ["stop when complete"] * config.stop_when_complete
     extra += [f"sizes N^-{config.size_draw_power:g}"] * (config.size_draw_power > 0)
     extra += [f"{config.learner.poi_order} POIs first"] * (config.learner.poi_order != "nearest")
     extra += [f"trap shaping {config.learner.trap_shaping:g}"] * (config.learner.trap_shaping > 0)
@@ -234,6 +235,9 @@ def main() -> None:
     parser.add_argument("--fail-rate", type=float, default=0.0, help="rover failures in training (train --fail-rate)")
     parser.add_argument("--unobserved-shaping", type=float, default=0.0, help="train --unobserved-shaping")
     parser.add_argument("--fail-max-rovers", type=int, default=0, help="train --fail-max-rovers")
+    parser.add_argument(
+        "--stop-when-complete", action="store_true", help="train --stop-when-complete (training episodes end there)"
+    )
     parser.add_argument("--size-draw-power", type=float, default=0.0, help="train --size-draw-power")
     parser.add_argument(
         "--poi-order",
@@ -272,6 +276,7 @@ def main() -> None:
             "fail_rate",
             "unobserved_shaping",
             "fail_max_rovers",
+            "stop_when_complete",
             "size_draw_power",
             "poi_order",
             "trap_shaping",

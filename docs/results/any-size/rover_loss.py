@@ -3,17 +3,19 @@
     python docs/results/any-size/rover_loss.py runs/anysize                     # seed 0
     python docs/results/any-size/rover_loss.py runs/anysize runs/p3-specialist --seed 1
     python docs/results/any-size/rover_loss.py runs/anysize --shield   # each run also behind the safety layer
+    python docs/results/any-size/rover_loss.py runs/anysize --mission examples/survey.yaml --failures 2
 
-1. ``examples/mission.yaml`` with one rover failing at a random step before the mission would
-   be complete (the failures of ``roverswarm mission stress``, same key): of the episodes that
-   fail, how many POIs stay unobserved, how far the working rovers end from the first of them
-   (median), how far they moved in the last 5 steps (median of the farther), how many leave a
-   POI that the failed rover stands on (its centre within the rover radius of the POI) or
+1. ``examples/mission.yaml`` (or ``--mission``) with one rover (or ``--failures``) failing at a
+   random step before the mission would be complete (the failures of ``roverswarm mission
+   stress``, same key): of the episodes that fail, how many POIs stay unobserved, how far the
+   working rovers end from the first of them (median) and from the nearest open POI, how far
+   they moved in the last 5 steps (median of the farther), how many leave a POI that a failed
+   rover stands on (its centre within the rover radius of the POI) or
    against (within the keep-out radius round a failed rover less the POI's observation radius:
    no working rover observes it without entering the keep-out circle, which the oracle's
    steering and the safety layer hold them out of), and success by when the failure came (as a
    share of the time the episode took without it), per fifth; and over every episode, how many
-   rover-steps a working rover touched the failed one.
+   rover-steps a working rover touched a failed one.
 2. ``paper-3``, one rover failing at a uniform step in every episode: the episode reward, the
    distance of the working rovers to the POIs not yet observed summed over the steps (what
    ``--unobserved-shaping`` charges, per rover) and the share of episodes that observe every
@@ -25,6 +27,7 @@ Each run's seed ``--seed`` drives the rovers; deterministic (no exploration nois
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -40,46 +43,54 @@ from roverswarm.steering import FAILED_MARGIN
 from roverswarm.stress import random_failures
 
 
-def mission_failures(spec: str, seed: int, episodes: int, shield: bool = False) -> None:
-    """Measurement 1 for the run (or ``oracle``) ``spec``, with ``shield`` behind the safety layer."""
-    mission = load_mission(MISSION)
+def mission_failures(
+    spec: str, seed: int, episodes: int, shield: bool = False, path: Path = MISSION, failures: int = 1
+) -> None:
+    """Measurement 1 for the run (or ``oracle``) ``spec`` on the mission file ``path`` with
+    ``failures`` rovers failing, with ``shield`` behind the safety layer."""
+    mission = load_mission(path)
     params = mission.params
     policy = load_policy(spec, params, f"mission '{mission.name}'", seed, shield=shield)
     keep_out, radii = 2 * params.rover_radius + FAILED_MARGIN, np.asarray(observe_radii(params))
     key = jax.random.PRNGKey(0)
     clean = MissionStats.of(rollout(policy, key, params, episodes))
     finish = np.where(clean.success, clean.time_to_all, params.max_steps)
-    fail_step = random_failures(jax.random.fold_in(key, 1), finish, params.num_rovers)
+    fail_step = random_failures(jax.random.fold_in(key, 1), finish, params.num_rovers, failures)
     data = rollout(policy, key, params, episodes, fail_step=fail_step)
     stats = MissionStats.of(data)
-    failed_rover = fail_step.argmin(axis=1)
-    episode = np.arange(episodes)
-    to_failed = np.linalg.norm(data.rover_pos - data.rover_pos[episode, :, failed_rover][:, :, None], axis=-1)
-    touching = to_failed < 2 * params.rover_radius  # [E, T + 1, N]; the failed rover itself at 0
-    touching[episode, :, failed_rover] = False
-    ending, moving, missing, under, against = [], [], [], [], []
+    failed = fail_step != NEVER  # [E, N]
+    gaps = np.linalg.norm(data.rover_pos[:, :, :, None] - data.rover_pos[:, :, None], axis=-1)  # [E, T + 1, N, N]
+    contact = (gaps < 2 * params.rover_radius) & failed[:, None, None, :] & ~np.eye(params.num_rovers, dtype=bool)
+    touching = contact.any(axis=-1) & ~failed[:, None, :]  # [E, T + 1, N]: a working rover touching a failed one
+    ending, nearest, moving, missing, under, against = [], [], [], [], [], []
     for e in np.flatnonzero(~stats.success):
         unobserved = np.flatnonzero(~data.observed[e, -1])
-        working = np.arange(params.num_rovers) != failed_rover[e]
+        working = ~failed[e]
         end = data.rover_pos[e, -1, working]
-        ending.append(np.linalg.norm(end - data.poi_pos[e, unobserved[0]], axis=-1).min())
+        to_open = np.linalg.norm(end[:, None] - data.poi_pos[e, unobserved][None], axis=-1)  # [working, open]
+        ending.append(to_open[:, 0].min())
+        nearest.append(to_open.min())
         moving.append(np.linalg.norm(end - data.rover_pos[e, -6, working], axis=-1).max())
         missing.append(len(unobserved))
-        gap = np.linalg.norm(data.poi_pos[e, unobserved] - data.rover_pos[e, -1, failed_rover[e]], axis=-1)
+        gap = np.linalg.norm(
+            data.poi_pos[e, unobserved][:, None] - data.rover_pos[e, -1, failed[e]][None], axis=-1
+        ).min(axis=1)
         under.append(np.any(gap < params.rover_radius))
         against.append(np.any(gap < keep_out - radii[unobserved]))
     name = f"{spec} behind the safety layer" if shield else spec
+    lost = "one failure" if failures == 1 else f"{failures} failures"
     print(
-        f"{name} (seed {seed}): mission with one failure {stats.success.mean():.0%} of {episodes},"
-        f" {touching.sum(axis=(1, 2)).mean():.2f} rover-steps touching the failed rover per episode"
+        f"{name} (seed {seed}), mission '{mission.name}' with {lost}: {stats.success.mean():.0%} of {episodes},"
+        f" {touching.sum(axis=(1, 2)).mean():.2f} rover-steps touching a failed rover per episode"
     )
     if missing:
         counts = np.bincount(missing)
         print(
             f"  {len(missing)} fail; POIs unobserved: "
             + ", ".join(f"{k}: {c}" for k, c in enumerate(counts) if c)
-            + f"; working rovers end {np.median(ending):.2f} from the first (median) and moved"
-            f" {np.median(moving):.3f} in the last 5 steps (median); {sum(against)} leave a POI the failed rover"
+            + f"; working rovers end {np.median(ending):.2f} from the first (median; from the nearest open POI"
+            f" {np.median(nearest):.3f}, its observation radius {np.median(radii):.2f}) and moved"
+            f" {np.median(moving):.3f} in the last 5 steps (median); {sum(against)} leave a POI a failed rover"
             f" stands against ({sum(under)} of them on it)"
         )
     share = fail_step.min(axis=1) / np.maximum(finish, 1)
@@ -88,7 +99,7 @@ def mission_failures(spec: str, seed: int, episodes: int, shield: bool = False) 
         for b in range(5)
         if np.any((share >= b / 5) & (share < (b + 1) / 5))
     ]
-    print("  success by when the failure came, per fifth of the clean episode: " + " / ".join(fifths))
+    print("  success by when the (first) failure came, per fifth of the clean episode: " + " / ".join(fifths))
 
 
 def unobserved_distance(data: Rollout, fail_step: np.ndarray) -> np.ndarray:
@@ -125,13 +136,16 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="which seed of each run drives the rovers")
     parser.add_argument("--episodes", type=int, default=500, help="mission episodes (paper-3: twice as many)")
     parser.add_argument("--shield", action="store_true", help="measurement 1 also behind the safety layer")
+    parser.add_argument("--mission", type=Path, default=MISSION, help="measurement 1's mission file")
+    parser.add_argument("--failures", type=int, default=1, help="measurement 1's rovers failing per episode")
     args = parser.parse_args()
     enable_compilation_cache()
     specs = ["oracle", *(r for r in args.runs if r != "oracle")]
     for spec in specs:
-        mission_failures(spec, args.seed if spec != "oracle" else 0, args.episodes)
+        seed = args.seed if spec != "oracle" else 0
+        mission_failures(spec, seed, args.episodes, path=args.mission, failures=args.failures)
         if args.shield and spec != "oracle":
-            mission_failures(spec, args.seed, args.episodes, shield=True)
+            mission_failures(spec, seed, args.episodes, True, args.mission, args.failures)
     print("\npaper-3, one rover failing at a uniform step in every episode:\n")
     print("| policy | episode reward | distance to unobserved POIs, summed | all POIs observed |\n|---|---|---|---|")
     for spec in specs:

@@ -1,0 +1,110 @@
+"""Rover loss beyond one failure on one mission: both example missions, one and two rovers failing.
+
+    python docs/results/any-size/failures.py --run runs/anysize-uncrossed --run runs/anysize-shield-fail:shield
+
+``mission stress`` (500 episodes, seed 0, the same starts and failures for every policy) of
+``examples/mission.yaml`` (3 rovers from fixed starts, 3 POIs) and ``examples/survey.yaml`` (3
+rovers released in a zone, 6 POIs: each rover must observe two, so a failure leaves two rovers
+three POIs each at worst), with one and with two random rover failures, for every seed of each
+run beside the oracle. A run is driven as it is and behind the safety layer; ``RUN:shield``
+only behind it (a run trained behind the layer). Writes ``failures.csv`` and ``failures.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from any_size import MISSION  # the script beside this one
+
+from roverswarm.env.missions import load_mission
+from roverswarm.jaxcache import enable_compilation_cache
+from roverswarm.mission import load_policy
+from roverswarm.policies import ORACLE
+from roverswarm.runs import Run, write_csv
+from roverswarm.storage import atomic_write
+from roverswarm.stress import condition, stress_rows
+
+HERE = Path(__file__).resolve().parent
+MISSIONS = (MISSION, MISSION.parent / "survey.yaml")
+EPISODES = 500
+
+
+def measure(runs: list[tuple[Path, tuple[bool, ...]]], episodes: int = EPISODES) -> list[dict[str, object]]:
+    """One row per mission, failure count and policy: the oracle, then every run, layer and seed."""
+    rows = []
+    for path in MISSIONS:
+        mission = load_mission(path)
+        policies, names = [ORACLE], [("oracle", False)]
+        for run, layers in runs:
+            for shield in layers:
+                for seed in range(Run(run).config.seeds):
+                    policies.append(load_policy(str(run), mission, seed, shield))
+                    names.append((run.name, shield))
+        for failures in (1, 2):
+            found, _ = stress_rows(policies, mission, episodes, seed=0, failures=failures)
+            for (run, shield), clean, failed in zip(names, found[::2], found[1::2]):
+                rows.append(
+                    {
+                        "mission": path.name,
+                        "failures": failures,
+                        "run": run,
+                        "shield": shield,
+                        "policy": failed["policy"],
+                        "success_clean": clean["success"],
+                        **{
+                            k: failed[k]
+                            for k in ("success", "time_to_all", "pois_observed", "collisions", "trap_contacts")
+                        },
+                    }
+                )
+                print(*(f"{v:.3f}" if isinstance(v, float) else v for v in rows[-1].values()), flush=True)
+    return rows
+
+
+def markdown(rows: list[dict[str, object]], episodes: int = EPISODES) -> str:
+    """One line per mission, failure count, run and layer: every seed's success beside the oracle's."""
+    lines = [
+        f"# Rover loss on both example missions ({episodes} episodes per row, seed 0)",
+        "",
+        "Success with the failures (every seed; without any failure in brackets where below 100%), "
+        "then the seeds' mean POIs observed, collisions and trap contacts. "
+        "Rerun: `python docs/results/any-size/failures.py --run runs/anysize-uncrossed "
+        "--run runs/anysize-shield-fail:shield`.",
+        "",
+        "| mission | rovers failing | policy | success, every seed | POIs observed | collisions | trap contacts |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    groups: dict[tuple, list[dict[str, object]]] = {}
+    for r in rows:
+        groups.setdefault((r["mission"], r["failures"], r["run"], r["shield"]), []).append(r)
+    for (mission, failures, run, shield), group in groups.items():
+        seeds = " / ".join(
+            f"{r['success']:.1%}" + (f" ({r['success_clean']:.1%})" if r["success_clean"] < 1 else "") for r in group
+        )
+        mean = {k: sum(r[k] for r in group) / len(group) for k in ("pois_observed", "collisions", "trap_contacts")}
+        name = f"{run}, behind the layer" if shield else run
+        lines.append(
+            f"| {mission} | {condition(failures)} | {name} | {seeds} | {mean['pois_observed']:.2f} "
+            f"| {mean['collisions']:.2f} | {mean['trap_contacts']:.2f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--run", action="append", required=True, help="a run folder; RUN:shield: only behind the layer")
+    parser.add_argument("--out", type=Path, default=HERE / "failures")
+    args = parser.parse_args()
+    enable_compilation_cache()
+    runs = [
+        (Path(spec.removesuffix(":shield")), (True,) if spec.endswith(":shield") else (False, True))
+        for spec in args.run
+    ]
+    rows = measure(runs)
+    write_csv(args.out.with_suffix(".csv"), rows)
+    atomic_write(args.out.with_suffix(".md"), lambda f: f.write(markdown(rows)))
+
+
+if __name__ == "__main__":
+    main()
