@@ -417,7 +417,7 @@ def _failures_by_hand(key, finish: np.ndarray, n: int, failures: int) -> np.ndar
     fail_step = np.full((len(finish), n), NEVER, np.int32)
     working = [list(range(n)) for _ in finish]
     for j in range(failures):
-        k_rover, k_when = jax.random.split(key if j == 0 else jax.random.fold_in(key, j))
+        k_rover, k_when = jax.random.split(key if j == 0 else jax.random.fold_in(jax.random.fold_in(key, 2), j))
         pick = np.asarray(jax.random.randint(k_rover, (len(finish),), 0, n - j))
         when = np.asarray(jax.random.uniform(k_when, (len(finish),)))
         for e in range(len(finish)):
@@ -448,13 +448,16 @@ def test_random_failures_draw_distinct_rovers_uniformly_before_the_finish():
     np.testing.assert_array_equal(one.min(axis=1), when)
     pairs = np.unique(random_failures(key, finish, n, 2) != NEVER, axis=0, return_counts=True)[1]
     assert len(pairs) == 10 and np.all(np.abs(pairs / len(finish) - 0.1) < 0.015), pairs
+    done = random_failures(key, np.array([0]), 2)  # one episode, complete at reset: at step 0
+    assert done.shape == (1, 2) and sorted(done[0].tolist()) == [0, NEVER]
 
 
-def test_mission_stress_with_two_failures_and_a_refused_count(tmp_path, capsys):
+def test_mission_stress_with_two_failures_and_a_refused_count(tmp_path, capsys, monkeypatch):
     """``--failures 2`` on the example mission: the oracle, left with one rover of three,
     finishes less often than with one failure (the same episodes' starts; failures drawn
-    alike); the rows say how many rovers failed. ``--failures 3`` leaves no rover: one line,
-    exit code 2, nothing written."""
+    alike); the rows say how many rovers failed. ``--failures 3`` leaves no rover, 0 fails
+    none, a mission of one rover has none to spare: one line each, exit code 2, nothing
+    written, before the policy is loaded."""
     mission = EXAMPLES / "mission.yaml"
     one = {r["condition"]: r for r in stress_mission(mission, "oracle", tmp_path / "one", episodes=60)}
     two = {r["condition"]: r for r in stress_mission(mission, "oracle", tmp_path / "two", episodes=60, failures=2)}
@@ -463,10 +466,22 @@ def test_mission_stress_with_two_failures_and_a_refused_count(tmp_path, capsys):
     assert two["2 rovers fail"]["success"] < one["one rover fails"]["success"] - 0.1, (one, two)
     assert two["2 rovers fail"]["pois_observed"] < one["one rover fails"]["pois_observed"]
     assert "# Mission 'jezero-delta': 2 rovers fail" in (tmp_path / "two" / "stress.md").read_text()
-    assert main(["mission", "stress", str(mission), "--failures", "3", "--out", str(tmp_path / "three")]) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and "--failures must be in [1, 2] for 3 rovers (one must keep working), got 3" in err
-    assert not (tmp_path / "three").exists()
+
+    def never(*args, **kwargs):
+        raise AssertionError("the count is checked before the policy is loaded")
+
+    monkeypatch.setattr("roverswarm.stress.load_policy", never)
+    lone = with_change(lambda d: d["rovers"].update(start=[[-0.5, -0.8]]))
+    (tmp_path / "lone.yaml").write_text(yaml.safe_dump(lone))
+    for path, count, message in (
+        (mission, "3", "--failures must be in [1, 2] for 3 rovers (one must keep working), got 3"),
+        (mission, "0", "--failures must be in [1, 2] for 3 rovers (one must keep working), got 0"),
+        (tmp_path / "lone.yaml", "1", "mission stress needs at least 2 rovers (one fails, one keeps working), got 1"),
+    ):
+        assert main(["mission", "stress", str(path), "--failures", count, "--out", str(tmp_path / "refused")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and message in err, err
+    assert not (tmp_path / "refused").exists()
 
 
 def test_train_on_a_mission_then_run_the_policy_and_refuse_a_mismatch(tiny_config, tmp_path):

@@ -26,6 +26,7 @@ from roverswarm.runs import folder_lock
 
 def check_failures(failures: int, num_rovers: int) -> None:
     """``failures`` must leave at least one of ``num_rovers`` working."""
+    require(num_rovers >= 2, f"mission stress needs at least 2 rovers (one fails, one keeps working), got {num_rovers}")
     require(
         1 <= failures < num_rovers,
         f"--failures must be in [1, {num_rovers - 1}] for {num_rovers} rovers (one must keep working), got {failures}",
@@ -35,13 +36,14 @@ def check_failures(failures: int, num_rovers: int) -> None:
 def random_failures(key: jax.Array, finish: np.ndarray, num_rovers: int, failures: int = 1) -> np.ndarray:
     """[E, N] fail steps: in episode e, ``failures`` distinct rovers, each drawn uniformly from
     those still working, fail at steps drawn uniformly in [0, finish[e]), before the mission
-    would be complete (a later failure changes nothing). The first failure comes from ``key``
-    itself, each further one from ``fold_in(key, j)``: one failure is drawn as it always was."""
+    would be complete (a later failure changes nothing; with finish[e] = 0, at step 0). The
+    first failure comes from ``key`` itself, failure j > 0 from ``fold_in(fold_in(key, 2), j)``
+    (``fold_in(key, 1)`` is one of the first failure's keys): one failure is drawn as it always was."""
     check_failures(failures, num_rovers)
     episodes = np.arange(len(finish))
     fail_step = np.full((len(finish), num_rovers), NEVER, np.int32)
     for j in range(failures):
-        k_rover, k_when = jax.random.split(key if j == 0 else jax.random.fold_in(key, j))
+        k_rover, k_when = jax.random.split(key if j == 0 else jax.random.fold_in(jax.random.fold_in(key, 2), j))
         pick = np.asarray(jax.random.randint(k_rover, (len(finish),), 0, num_rovers - j))
         working = np.cumsum(fail_step == NEVER, axis=1)  # [E, N]: rank among the rovers still working
         rover = np.argmax((working == pick[:, None] + 1) & (fail_step == NEVER), axis=1)
