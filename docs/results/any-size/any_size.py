@@ -66,9 +66,11 @@ SHIELDED = {
     "the preset behind the safety layer": HERE / "any-size-shield.csv",
     "trained behind the safety layer (60k)": HERE / "any-size-shield-trained.csv",
     "trained behind it with failures (60k)": HERE / "any-size-shield-fail.csv",
+    "failures, episodes end when complete, behind it": HERE / "any-size-stop-fail-shield.csv",
 }
-"""The tables behind the safety layer: the preset's run evaluated behind it, and the runs trained
-behind it (without and with rover failures). The trap contacts figure (:data:`CONTACTS`,
+"""The tables behind the safety layer: the preset's run evaluated behind it, the runs trained
+behind it (without and with rover failures), and the run trained with failures and episodes
+that end when complete, evaluated behind it. The trap contacts figure (:data:`CONTACTS`,
 redrawn when any of them is written) sets every one that exists beside :data:`PRESET` and the
 oracle."""
 CONTACTS = HERE / "any-size-shield-contacts.png"

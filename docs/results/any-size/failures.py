@@ -1,6 +1,7 @@
 """Rover loss beyond one failure on one mission: both example missions, one and two rovers failing.
 
-    python docs/results/any-size/failures.py --run runs/anysize-uncrossed --run runs/anysize-shield-fail:shield
+    python docs/results/any-size/failures.py --run runs/anysize-uncrossed --run runs/anysize-shield-fail:shield \
+        --run runs/anysize-stop-fail
 
 ``mission stress`` (500 episodes, seed 0, the same starts and failures for every policy) of
 ``examples/mission.yaml`` (3 rovers from fixed starts, 3 POIs) and ``examples/survey.yaml`` (3
@@ -62,15 +63,15 @@ def measure(runs: list[tuple[Path, tuple[bool, ...]]], episodes: int = EPISODES)
     return rows
 
 
-def markdown(rows: list[dict[str, object]], episodes: int = EPISODES) -> str:
-    """One line per mission, failure count, run and layer: every seed's success beside the oracle's."""
+def markdown(rows: list[dict[str, object]], command: str, episodes: int = EPISODES) -> str:
+    """One line per mission, failure count, run and layer: every seed's success beside the
+    oracle's; ``command`` reruns it."""
     lines = [
         f"# Rover loss on both example missions ({episodes} episodes per row, seed 0)",
         "",
         "Success with the failures (every seed; without any failure in brackets where below 100%), "
         "then the seeds' mean POIs observed, collisions and trap contacts. "
-        "Rerun: `python docs/results/any-size/failures.py --run runs/anysize-uncrossed "
-        "--run runs/anysize-shield-fail:shield`.",
+        f"Rerun: `{command}`.",
         "",
         "| mission | rovers failing | policy | success, every seed | POIs observed | collisions | trap contacts |",
         "|---|---|---|---|---|---|---|",
@@ -103,7 +104,8 @@ def main() -> None:
     ]
     rows = measure(runs)
     write_csv(args.out.with_suffix(".csv"), rows)
-    atomic_write(args.out.with_suffix(".md"), lambda f: f.write(markdown(rows)))
+    command = " ".join(["python docs/results/any-size/failures.py", *(f"--run {spec}" for spec in args.run)])
+    atomic_write(args.out.with_suffix(".md"), lambda f: f.write(markdown(rows, command)))
 
 
 if __name__ == "__main__":
