@@ -45,8 +45,9 @@ def random_failures(key: jax.Array, finish: np.ndarray, num_rovers: int, failure
     for j in range(failures):
         k_rover, k_when = jax.random.split(key if j == 0 else jax.random.fold_in(jax.random.fold_in(key, 2), j))
         pick = np.asarray(jax.random.randint(k_rover, (len(finish),), 0, num_rovers - j))
-        working = np.cumsum(fail_step == NEVER, axis=1)  # [E, N]: rank among the rovers still working
-        rover = np.argmax((working == pick[:, None] + 1) & (fail_step == NEVER), axis=1)
+        working = fail_step == NEVER  # [E, N]
+        rank = np.cumsum(working, axis=1)  # a working rover's place among them, from 1
+        rover = np.argmax(working & (rank == pick[:, None] + 1), axis=1)
         when = np.asarray(jax.random.uniform(k_when, (len(finish),)))
         fail_step[episodes, rover] = np.floor(when * finish).astype(np.int32)
     return fail_step
