@@ -150,6 +150,19 @@ def test_fail_max_rovers_fails_and_shapes_only_the_small_swarms(tiny_anysize):
     assert (charged[:, sizes <= 3] <= 1e-6).all() and (charged[:, sizes <= 3] < -1e-3).any()
 
 
+def test_fail_count_reaches_the_training_episodes(tiny_anysize):
+    """--fail-count 2 over paper-2..4 with --fail-rate 1: a swarm of 2 loses one rover, a swarm
+    of 3 or 4 one or two, as the training environments draw them."""
+    many = dataclasses.replace(tiny_anysize, num_envs=100, fail_rate=1.0, fail_count=2)
+    params = validate(many)
+    config = configure(many, params)
+    state = reset_all(config, training_params(config, params), jax.random.PRNGKey(3), jnp.asarray(10**6))
+    sizes = np.asarray(state.rover_mask).sum(-1)
+    failing = (np.asarray(state.fail_step) < NEVER).sum(-1)
+    assert (failing[sizes == 2] == 1).all()
+    assert set(failing[sizes >= 3]) == {1, 2}
+
+
 def test_size_curriculum_widens_the_range():
     config = configure(
         dataclasses.replace(ANYSIZE, size_curriculum=1000), validate(dataclasses.replace(ANYSIZE, size_curriculum=1000))
@@ -238,6 +251,8 @@ def test_a_flat_policy_refuses_another_size(tiny_ppo_config, tmp_path, capsys):
         ({"balance_sizes": True, "size_curriculum": 0, "scenario": "paper-3"}, "--balance-sizes needs a range"),
         ({"entity_heads": 3, "entity_dim": 8}, "must be >= 1 and divide --entity-dim"),
         ({"swarm_value": True, "algo": "ippo"}, "--swarm-value is MAPPO's centralised value over --network nearest"),
+        ({"fail_count": 2}, "--fail-count 2 says how many rovers a failure episode loses; give --fail-rate"),
+        ({"fail_count": 0, "fail_rate": 1.0}, "--fail-count must be >= 1 rover, got 0"),
         ({"fail_max_rovers": 3}, "--fail-max-rovers 3 limits --fail-rate to small swarms"),
         ({"fail_max_rovers": -1, "fail_rate": 1.0}, "--fail-max-rovers must be >= 0"),
         ({"fail_max_rovers": 10, "fail_rate": 1.0}, r"--fail-max-rovers 10 must be in \[2, 9\]"),

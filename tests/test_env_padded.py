@@ -236,6 +236,32 @@ def test_fail_rate_draws_failures_at_that_rate_without_changing_the_layout():
     assert np.asarray(some.fail_step)[failing].max() < STEPS
 
 
+def test_fail_count_fails_up_to_k_distinct_rovers_and_keeps_one_working():
+    """fail_count 3 on padded paper-2..6 layouts: k failing rovers, k uniform in [1, min(3,
+    active - 1)], only rovers that exist, each slot equally often, steps uniform in [0, 25);
+    the first failure is the one fail_count 1 draws (the same key), the layout unchanged."""
+    keys = jax.random.split(jax.random.PRNGKey(1), 6000)
+    active = np.asarray(jax.random.randint(jax.random.PRNGKey(2), (6000,), 2, 7))
+    padded = padded_scenario("paper-2..6").replace(fail_rate=1.0)
+    draw = jax.vmap(lambda k, n, p: reset(k, sized(p, n))[1], in_axes=(0, 0, None))
+    one, three = draw(keys, active, padded), draw(keys, active, padded.replace(fail_count=3))
+    np.testing.assert_array_equal(one.rover_pos, three.rover_pos)
+    first = np.asarray(one.fail_step) != NEVER
+    failing = np.asarray(three.fail_step) != NEVER
+    np.testing.assert_array_equal(np.asarray(three.fail_step)[first], np.asarray(one.fail_step)[first])
+    assert not (failing & ~np.asarray(three.rover_mask)).any()
+    count = failing.sum(axis=1)
+    for n in range(2, 7):
+        top = min(3, n - 1)
+        shares = np.bincount(count[active == n], minlength=top + 1)[1:] / np.sum(active == n)
+        np.testing.assert_allclose(shares, np.full(top, 1 / top), atol=0.06)
+        slots = failing[active == n][:, :n].mean(axis=0)  # each rover's share: E[k] / n
+        np.testing.assert_allclose(slots, np.full(n, (top + 1) / 2 / n), atol=0.06)
+    steps = np.asarray(three.fail_step)[failing]
+    assert steps.min() == 0 and steps.max() == STEPS - 1
+    assert abs(steps.mean() - (STEPS - 1) / 2) < 0.5
+
+
 def test_oracle_and_random_on_a_padded_layout_match_the_unpadded_layout_in_distribution():
     """Evaluation on a padded layout with N active: the oracle observes every POI as often and
     scores near the unpadded environment's (different layouts, same distribution)."""
@@ -295,6 +321,8 @@ def test_bad_failure_rates_and_counts_are_refused():
     params = get_scenario("paper-4")
     with pytest.raises(UserError, match=r"fail_rate must be in \[0, 1\]"):
         validate_params(params.replace(fail_rate=1.5))
+    with pytest.raises(UserError, match="fail_count must be an integer >= 1"):
+        validate_params(params.replace(fail_rate=1.0, fail_count=0))
     with pytest.raises(UserError, match=r"active_rovers must be in \[1, 4\]"):
         validate_params(params.replace(active_rovers=5))
     with pytest.raises(UserError, match="range of swarm sizes"):

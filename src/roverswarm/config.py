@@ -80,6 +80,10 @@ class TrainConfig:
     fail_rate: float = 0.0
     """Probability per training episode that one rover, drawn uniformly, fails at a uniform
     step (it stops where it is; see docs/environment.md#rover-failures). Evaluation has none."""
+    fail_count: int = 1
+    """With --fail-rate: up to this many rovers fail in a failure episode, k drawn uniformly in
+    [1, min(K, rovers - 1)] (one keeps working), each rover uniform and at its own uniform step;
+    1: one. ``mission stress --failures K`` measures K failures."""
     fail_max_rovers: int = 0
     """With a range scenario and --fail-rate: failures, and --unobserved-shaping with them, only
     in episodes of at most this many rovers (the rover-loss lesson where a failure leaves fewer
@@ -268,6 +272,11 @@ def validate(config: TrainConfig) -> EnvParams:
     )
     require(config.size_curriculum >= 0, f"--size-curriculum must be >= 0 episodes, got {config.size_curriculum}")
     _finite(config.size_draw_power, 0, "size-draw-power")
+    require(config.fail_count >= 1, f"--fail-count must be >= 1 rover, got {config.fail_count}")
+    require(
+        config.fail_count == 1 or config.fail_rate > 0,
+        f"--fail-count {config.fail_count} says how many rovers a failure episode loses; give --fail-rate p > 0",
+    )
     require(config.fail_max_rovers >= 0, f"--fail-max-rovers must be >= 0 rovers, got {config.fail_max_rovers}")
     require(
         config.fail_max_rovers == 0 or config.fail_rate > 0,

@@ -1,6 +1,6 @@
 """What episodes training draws, for every learner family: the swarm size of each episode of a
 range scenario (``--scenario paper-2..10``, with ``--size-curriculum`` and
-``--size-draw-power``), rover failures (``--fail-rate``, ``--fail-max-rovers``), episodes that
+``--size-draw-power``), rover failures (``--fail-rate``, ``--fail-count``, ``--fail-max-rovers``), episodes that
 end once every POI is observed (``--stop-when-complete``), the actions the environment gets
 (``--shield``) and the reward the learner trains on.
 
@@ -32,6 +32,7 @@ class EpisodeOptions:
     size_curriculum: int = 0
     size_draw_power: float = 0.0
     fail_rate: float = 0.0
+    fail_count: int = 1
     fail_max_rovers: int = 0
     stop_when_complete: bool = False
 
@@ -52,11 +53,11 @@ def size_cap(config, episodes: jax.Array) -> jax.Array:
 
 
 def training_params(config, params: EnvParams) -> EnvParams:
-    """The environment training steps: ``params`` with --fail-rate (one rover may fail in each
-    episode; with --fail-max-rovers only in small swarms, per episode at reset) and
-    --stop-when-complete (an episode ends once every POI is observed)."""
+    """The environment training steps: ``params`` with --fail-rate (one rover, or up to
+    --fail-count, may fail in each episode; with --fail-max-rovers only in small swarms, per
+    episode at reset) and --stop-when-complete (an episode ends once every POI is observed)."""
     if config.fail_rate > 0:
-        params = params.replace(fail_rate=config.fail_rate)
+        params = params.replace(fail_rate=config.fail_rate, fail_count=config.fail_count)
     return params.replace(terminate_on_complete=params.terminate_on_complete or config.stop_when_complete)
 
 

@@ -142,7 +142,8 @@ def setting(config: TrainConfig) -> str:
     run changes of the rover-loss lesson, the size draw, the trap shaping, the teacher (and
     its decay) and the safety layer when it has them."""
     limit = f" up to {config.fail_max_rovers} rovers" if config.fail_max_rovers else ""
-    extra = [f"fail {config.fail_rate:g}{limit}"] * (config.fail_rate > 0)
+    count = f" x up to {config.fail_count}" if config.fail_count > 1 else ""
+    extra = [f"fail {config.fail_rate:g}{count}{limit}"] * (config.fail_rate > 0)
     extra += [f"shaping {config.learner.unobserved_shaping:g}"] * (config.learner.unobserved_shaping > 0)
     extra += ["stop when complete"] * config.stop_when_complete
     extra += [f"sizes N^-{config.size_draw_power:g}"] * (config.size_draw_power > 0)
@@ -236,6 +237,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=HERE / "any-size", help="output path without suffix")
     parser.add_argument("--fail-rate", type=float, default=0.0, help="rover failures in training (train --fail-rate)")
     parser.add_argument("--unobserved-shaping", type=float, default=0.0, help="train --unobserved-shaping")
+    parser.add_argument("--fail-count", type=int, default=1, help="train --fail-count (rovers lost per failure episode)")
     parser.add_argument("--fail-max-rovers", type=int, default=0, help="train --fail-max-rovers")
     parser.add_argument(
         "--stop-when-complete", action="store_true", help="train --stop-when-complete (training episodes end there)"
@@ -276,6 +278,7 @@ def main() -> None:
     if not (args.evaluate or args.stress_only):
         options = (
             "fail_rate",
+            "fail_count",
             "unobserved_shaping",
             "fail_max_rovers",
             "stop_when_complete",

@@ -76,8 +76,10 @@ class EnvParams:
     active_pois: jax.Array | int | None = None  # [] int
     active_traps: jax.Array | int | None = None  # [] int
     # Rover failures while training: with this probability per episode one active rover, drawn
-    # uniformly, fails at a step drawn uniformly in [0, max_steps) (None or 0: none fails).
+    # uniformly, fails at a step drawn uniformly in [0, max_steps) (None or 0: none fails);
+    # with ``fail_count`` K > 1, k rovers, k drawn uniformly in [1, min(K, active rovers - 1)].
     fail_rate: jax.Array | float | None = None  # [] float in [0, 1]
+    fail_count: int = struct.field(pytree_node=False, default=1)
 
 
 @struct.dataclass
@@ -213,12 +215,26 @@ def reset(key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
 
 def _draw_failure(key: jax.Array, params: EnvParams, active_rovers) -> jax.Array:
     """[N] fail steps: with probability ``fail_rate`` one of the ``active_rovers`` first rovers,
-    uniform, fails at a uniform step in [0, max_steps); NEVER elsewhere."""
+    uniform, fails at a uniform step in [0, max_steps); NEVER elsewhere. With ``fail_count`` K >
+    1, k - 1 more of them, distinct and uniform, each at its own uniform step, k drawn uniformly
+    in [1, min(K, active_rovers - 1)] (one keeps working), from keys of their own: the first
+    failure is drawn as with K = 1."""
     k_fails, k_rover, k_step = jax.random.split(key, 3)
     fails = jax.random.uniform(k_fails) < params.fail_rate
+    index = jnp.arange(params.num_rovers)
     rover = jax.random.randint(k_rover, (), 0, active_rovers)
     when = jax.random.randint(k_step, (), 0, params.max_steps)
-    return jnp.where(fails & (jnp.arange(params.num_rovers) == rover), when, NEVER).astype(jnp.int32)
+    fail_step = jnp.where(index == rover, when, NEVER)
+    if params.fail_count > 1:
+        # fold_in(key, 1) and (key, 2) are split(key, 3)'s second and third keys: 3 on
+        k_count, k_order, k_steps = (jax.random.fold_in(key, j) for j in (3, 4, 5))
+        most = jnp.maximum(jnp.minimum(params.fail_count, active_rovers - 1), 1)
+        count = jax.random.randint(k_count, (), 1, most + 1)
+        # the other active rovers in a random order; the first count - 1 of them fail too
+        draw = jnp.where((index < active_rovers) & (index != rover), jax.random.uniform(k_order, index.shape), 2.0)
+        more = jnp.argsort(jnp.argsort(draw)) < count - 1
+        fail_step = jnp.where(more, jax.random.randint(k_steps, index.shape, 0, params.max_steps), fail_step)
+    return jnp.where(fails, fail_step, NEVER).astype(jnp.int32)
 
 
 def other_rovers(num_rovers: int) -> np.ndarray:

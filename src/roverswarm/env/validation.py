@@ -69,4 +69,8 @@ def validate_params(params: EnvParams) -> EnvParams:
         params.fail_rate is None or bool(np.all((np.asarray(params.fail_rate) >= 0) & (np.asarray(params.fail_rate) <= 1))),
         f"fail_rate must be in [0, 1] (a probability per episode), got {params.fail_rate}",
     )
+    require(
+        isinstance(params.fail_count, int) and params.fail_count >= 1,
+        f"fail_count must be an integer >= 1 (rovers failing at most per failure episode), got {params.fail_count}",
+    )
     return params
