@@ -346,7 +346,7 @@ def test_with_a_rover_down_the_oracle_loses_only_missions_it_cannot_finish_witho
         assert np.all(gap[open_pois] < untouched[open_pois]), (rover[e], when[e], gap)
 
 
-@pytest.mark.parametrize("name", ["mission.yaml", "survey.yaml"])
+@pytest.mark.parametrize("name", ["mission.yaml", "survey.yaml", "outpost.yaml"])
 def test_the_oracle_completes_the_example_missions(name):
     mission = load_mission(EXAMPLES / name)
     stats = MissionStats.of(rollout(ORACLE, jax.random.PRNGKey(0), mission.params, 20))

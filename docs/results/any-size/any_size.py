@@ -237,7 +237,9 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=HERE / "any-size", help="output path without suffix")
     parser.add_argument("--fail-rate", type=float, default=0.0, help="rover failures in training (train --fail-rate)")
     parser.add_argument("--unobserved-shaping", type=float, default=0.0, help="train --unobserved-shaping")
-    parser.add_argument("--fail-count", type=int, default=1, help="train --fail-count (rovers lost per failure episode)")
+    parser.add_argument(
+        "--fail-count", type=int, default=1, help="train --fail-count (rovers lost per failure episode)"
+    )
     parser.add_argument("--fail-max-rovers", type=int, default=0, help="train --fail-max-rovers")
     parser.add_argument(
         "--stop-when-complete", action="store_true", help="train --stop-when-complete (training episodes end there)"

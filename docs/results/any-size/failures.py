@@ -2,13 +2,16 @@
 
     python docs/results/any-size/failures.py --run runs/anysize-uncrossed --run runs/anysize-shield-fail:shield \
         --run runs/anysize-stop-fail
+    python docs/results/any-size/failures.py --mission examples/outpost.yaml --failures 1,2,3 \
+        --run runs/anysize-uncrossed --out docs/results/any-size/failures-outpost
 
 ``mission stress`` (500 episodes, seed 0, the same starts and failures for every policy) of
 ``examples/mission.yaml`` (3 rovers from fixed starts, 3 POIs) and ``examples/survey.yaml`` (3
 rovers released in a zone, 6 POIs: each rover must observe two, so a failure leaves two rovers
 three POIs each at worst), with one and with two random rover failures, for every seed of each
 run beside the oracle. A run is driven as it is and behind the safety layer; ``RUN:shield``
-only behind it (a run trained behind the layer). Writes ``failures.csv`` and ``failures.md``.
+only behind it (a run trained behind the layer). ``--mission`` (repeatable) and ``--failures``
+measure other missions and failure counts. Writes ``failures.csv`` and ``failures.md``.
 """
 
 from __future__ import annotations
@@ -31,10 +34,15 @@ MISSIONS = (MISSION, MISSION.parent / "survey.yaml")
 EPISODES = 500
 
 
-def measure(runs: list[tuple[Path, tuple[bool, ...]]], episodes: int = EPISODES) -> list[dict[str, object]]:
+def measure(
+    runs: list[tuple[Path, tuple[bool, ...]]],
+    missions: tuple[Path, ...] = MISSIONS,
+    counts: tuple[int, ...] = (1, 2),
+    episodes: int = EPISODES,
+) -> list[dict[str, object]]:
     """One row per mission, failure count and policy: the oracle, then every run, layer and seed."""
     rows = []
-    for path in MISSIONS:
+    for path in missions:
         mission = load_mission(path)
         policies, names = [ORACLE], [("oracle", False)]
         for run, layers in runs:
@@ -42,7 +50,7 @@ def measure(runs: list[tuple[Path, tuple[bool, ...]]], episodes: int = EPISODES)
                 for seed in range(Run(run).config.seeds):
                     policies.append(load_policy(str(run), mission, seed, shield))
                     names.append((run.name, shield))
-        for failures in (1, 2):
+        for failures in counts:
             found, _ = stress_rows(policies, mission, episodes, seed=0, failures=failures)
             for (run, shield), clean, failed in zip(names, found[::2], found[1::2]):
                 rows.append(
@@ -66,8 +74,10 @@ def measure(runs: list[tuple[Path, tuple[bool, ...]]], episodes: int = EPISODES)
 def markdown(rows: list[dict[str, object]], command: str, episodes: int = EPISODES) -> str:
     """One line per mission, failure count, run and layer: every seed's success beside the
     oracle's; ``command`` reruns it."""
+    missions = sorted({str(r["mission"]) for r in rows})
+    named = "both example missions" if missions == sorted(p.name for p in MISSIONS) else ", ".join(missions)
     lines = [
-        f"# Rover loss on both example missions ({episodes} episodes per row, seed 0)",
+        f"# Rover loss on {named} ({episodes} episodes per row, seed 0)",
         "",
         "Success with the failures (every seed; without any failure in brackets where below 100%), "
         "then the seeds' mean POIs observed, collisions and trap contacts. "
@@ -95,6 +105,8 @@ def markdown(rows: list[dict[str, object]], command: str, episodes: int = EPISOD
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run", action="append", required=True, help="a run folder; RUN:shield: only behind the layer")
+    parser.add_argument("--mission", type=Path, action="append", help="a mission file (default: both examples)")
+    parser.add_argument("--failures", default="1,2", help="failure counts, comma-separated")
     parser.add_argument("--out", type=Path, default=HERE / "failures")
     args = parser.parse_args()
     enable_compilation_cache()
@@ -102,9 +114,12 @@ def main() -> None:
         (Path(spec.removesuffix(":shield")), (True,) if spec.endswith(":shield") else (False, True))
         for spec in args.run
     ]
-    rows = measure(runs)
+    missions = tuple(args.mission) if args.mission else MISSIONS
+    rows = measure(runs, missions, tuple(int(k) for k in args.failures.split(",")))
     write_csv(args.out.with_suffix(".csv"), rows)
-    command = " ".join(["python docs/results/any-size/failures.py", *(f"--run {spec}" for spec in args.run)])
+    chosen = [f"--mission {path}" for path in args.mission or ()]
+    chosen += [f"--failures {args.failures}"] * (args.failures != "1,2")
+    command = " ".join(["python docs/results/any-size/failures.py", *chosen, *(f"--run {spec}" for spec in args.run)])
     atomic_write(args.out.with_suffix(".md"), lambda f: f.write(markdown(rows, command)))
 
 

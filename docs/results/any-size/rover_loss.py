@@ -4,6 +4,7 @@
     python docs/results/any-size/rover_loss.py runs/anysize runs/p3-specialist --seed 1
     python docs/results/any-size/rover_loss.py runs/anysize --shield   # each run also behind the safety layer
     python docs/results/any-size/rover_loss.py runs/anysize --mission examples/survey.yaml --failures 2
+    python docs/results/any-size/rover_loss.py runs/anysize-stop-fail --seed 2 --failures 2 --standstill
 
 1. ``examples/mission.yaml`` (or ``--mission``) with one rover (or ``--failures``) failing at a
    random step before the mission would be complete (the failures of ``roverswarm mission
@@ -16,6 +17,11 @@
    steering and the safety layer hold them out of), and success by when the failure came (as a
    share of the time the episode took without it), per fifth; and over every episode, how many
    rover-steps a working rover touched a failed one.
+   With ``--standstill`` (a trained run): the working rovers of those episodes that stood
+   still at the end (moved under 0.01 in the last 5 steps), and at each one's last state the
+   policy's action as it is and with every failed rover's token but the nearest hidden from
+   its view (a view with one failed rover, as training with one failure per episode shows):
+   the median action length and how many then head for an open POI.
 2. ``paper-3``, one rover failing at a uniform step in every episode: the episode reward, the
    distance of the working rovers to the POIs not yet observed summed over the steps (what
    ``--unobserved-shaping`` charges, per rover) and the share of episodes that observe every
@@ -34,17 +40,71 @@ import numpy as np
 from any_size import MISSION  # the script beside this one
 
 from roverswarm.env import get_scenario
-from roverswarm.env.mars import NEVER, observe_radii
+from roverswarm.env.mars import NEVER, EnvState, observe_radii
 from roverswarm.env.missions import load_mission
 from roverswarm.jaxcache import enable_compilation_cache
+from roverswarm.learners import learner_family
 from roverswarm.rollout import MissionStats, Rollout, rollout
 from roverswarm.runs import Run, load_policy
 from roverswarm.steering import FAILED_MARGIN
 from roverswarm.stress import random_failures
 
+FLAG = 8
+"""A token's flag feature (:mod:`roverswarm.env.entities`): for a rover token, it has failed."""
+
+
+def standstill(spec: str, seed: int, data: Rollout, fail_step: np.ndarray, lost: np.ndarray, params) -> None:
+    """``--standstill``: the working rovers of the ``lost`` episodes that stood still at the end,
+    and the policy's action at each one's last state, as it is and with one failed rover in view."""
+    run = Run(spec)
+    family = learner_family(run.config.learner.algo)
+    acting = family.acting(run.config)
+    weights = run.policy(seed).weights
+    steps = data.rover_pos.shape[1] - 1
+    found = []  # (action length, action length with one failed rover seen, heads for an open POI then)
+    for e in lost:
+        end, before = data.rover_pos[e, -1], data.rover_pos[e, -2]
+        state = EnvState(
+            rover_pos=end,
+            rover_vel=(end - before) / params.dt,
+            poi_pos=data.poi_pos[e],
+            trap_pos=data.trap_pos[e],
+            observed=data.observed[e, -1],
+            time=np.int32(steps),
+            fail_step=fail_step[e],
+        )
+        view = family.view(acting)(state, params)
+        rover = np.asarray(view.tokens[..., FLAG] > 0) & np.asarray(view.mask)  # [N, M]: failed rovers' tokens
+        rover[:, params.num_rovers - 1 :] = False  # the rover tokens come first
+        hidden = rover & (np.cumsum(rover, axis=1) > 1)  # every failed rover's token but the nearest
+        as_is = np.asarray(family.act(acting, weights, view, None))
+        one = np.asarray(family.act(acting, weights, view.replace(mask=view.mask & ~hidden), None))
+        open_pois = data.poi_pos[e, ~data.observed[e, -1]]
+        for i in np.flatnonzero(fail_step[e] == NEVER):
+            if np.linalg.norm(end[i] - data.rover_pos[e, -6, i]) >= 0.01 or not hidden[i].any():
+                continue
+            to_poi = open_pois - end[i]
+            cosine = to_poi @ one[i] / (np.linalg.norm(to_poi, axis=1) * np.linalg.norm(one[i]) + 1e-9)
+            found.append((np.linalg.norm(as_is[i]), np.linalg.norm(one[i]), cosine.max() > 0.7))
+    if not found:
+        print("  standstill: no working rover stood still beside more than one failed rover")
+        return
+    length, with_one, heads = np.asarray(found).T
+    print(
+        f"  standstill: {len(found)} working rovers stood still beside more than one failed rover; their action"
+        f" {np.median(length):.3f} long (median), with one failed rover in view {np.median(with_one):.3f},"
+        f" then {heads.mean():.0%} head for an open POI (cosine > 0.7)"
+    )
+
 
 def mission_failures(
-    spec: str, seed: int, episodes: int, shield: bool = False, path: Path = MISSION, failures: int = 1
+    spec: str,
+    seed: int,
+    episodes: int,
+    shield: bool = False,
+    path: Path = MISSION,
+    failures: int = 1,
+    still: bool = False,
 ) -> None:
     """Measurement 1 for the run (or ``oracle``) ``spec`` on the mission file ``path`` with
     ``failures`` rovers failing, with ``shield`` behind the safety layer."""
@@ -100,6 +160,8 @@ def mission_failures(
         if np.any((share >= b / 5) & (share < (b + 1) / 5))
     ]
     print("  success by when the (first) failure came, per fifth of the clean episode: " + " / ".join(fifths))
+    if still and spec != "oracle":
+        standstill(spec, seed, data, fail_step, np.flatnonzero(~stats.success), params)
 
 
 def unobserved_distance(data: Rollout, fail_step: np.ndarray) -> np.ndarray:
@@ -138,12 +200,13 @@ def main() -> None:
     parser.add_argument("--shield", action="store_true", help="measurement 1 also behind the safety layer")
     parser.add_argument("--mission", type=Path, default=MISSION, help="measurement 1's mission file")
     parser.add_argument("--failures", type=int, default=1, help="measurement 1's rovers failing per episode")
+    parser.add_argument("--standstill", action="store_true", help="measurement 1: why working rovers stand still")
     args = parser.parse_args()
     enable_compilation_cache()
     specs = ["oracle", *(r for r in args.runs if r != "oracle")]
     for spec in specs:
         seed = args.seed if spec != "oracle" else 0
-        mission_failures(spec, seed, args.episodes, path=args.mission, failures=args.failures)
+        mission_failures(spec, seed, args.episodes, path=args.mission, failures=args.failures, still=args.standstill)
         if args.shield and spec != "oracle":
             mission_failures(spec, seed, args.episodes, True, args.mission, args.failures)
     print("\npaper-3, one rover failing at a uniform step in every episode:\n")
