@@ -252,7 +252,11 @@ def test_a_flat_policy_refuses_another_size(tiny_ppo_config, tmp_path, capsys):
         ({"entity_heads": 3, "entity_dim": 8}, "must be >= 1 and divide --entity-dim"),
         ({"swarm_value": True, "algo": "ippo"}, "--swarm-value is MAPPO's centralised value over --network nearest"),
         ({"fail_count": 2}, "--fail-count 2 says how many rovers a failure episode loses; give --fail-rate"),
-        ({"fail_count": 0, "fail_rate": 1.0}, "--fail-count must be >= 1 rover, got 0"),
+        ({"fail_count": 0, "fail_rate": 1.0}, r"--fail-count must be in \[1, 9\] .*, got 0"),
+        (
+            {"fail_count": 10, "fail_rate": 1.0},
+            r"--fail-count must be in \[1, 9\] .*of the largest swarm's 10.*, got 10",
+        ),
         ({"fail_max_rovers": 3}, "--fail-max-rovers 3 limits --fail-rate to small swarms"),
         ({"fail_max_rovers": -1, "fail_rate": 1.0}, "--fail-max-rovers must be >= 0"),
         ({"fail_max_rovers": 10, "fail_rate": 1.0}, r"--fail-max-rovers 10 must be in \[2, 9\]"),

@@ -272,7 +272,12 @@ def validate(config: TrainConfig) -> EnvParams:
     )
     require(config.size_curriculum >= 0, f"--size-curriculum must be >= 0 episodes, got {config.size_curriculum}")
     _finite(config.size_draw_power, 0, "size-draw-power")
-    require(config.fail_count >= 1, f"--fail-count must be >= 1 rover, got {config.fail_count}")
+    most = max(params.num_rovers - 1, 1)
+    require(
+        1 <= config.fail_count <= most,
+        f"--fail-count must be in [1, {most}] (rovers lost per failure episode; of the largest swarm's "
+        f"{params.num_rovers}, one keeps working), got {config.fail_count}",
+    )
     require(
         config.fail_count == 1 or config.fail_rate > 0,
         f"--fail-count {config.fail_count} says how many rovers a failure episode loses; give --fail-rate p > 0",

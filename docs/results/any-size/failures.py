@@ -102,11 +102,22 @@ def markdown(rows: list[dict[str, object]], command: str, episodes: int = EPISOD
     return "\n".join(lines) + "\n"
 
 
+def counts(text: str) -> tuple[int, ...]:
+    """``--failures``: counts of at least 1, comma-separated."""
+    try:
+        found = tuple(int(k) for k in text.split(","))
+    except ValueError:
+        found = ()
+    if not found or min(found) < 1:
+        raise argparse.ArgumentTypeError(f"expected counts >= 1, comma-separated, such as 1,2,3; got '{text}'")
+    return found
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run", action="append", required=True, help="a run folder; RUN:shield: only behind the layer")
     parser.add_argument("--mission", type=Path, action="append", help="a mission file (default: both examples)")
-    parser.add_argument("--failures", default="1,2", help="failure counts, comma-separated")
+    parser.add_argument("--failures", type=counts, default=(1, 2), help="failure counts, comma-separated")
     parser.add_argument("--out", type=Path, default=HERE / "failures")
     args = parser.parse_args()
     enable_compilation_cache()
@@ -115,10 +126,14 @@ def main() -> None:
         for spec in args.run
     ]
     missions = tuple(args.mission) if args.mission else MISSIONS
-    rows = measure(runs, missions, tuple(int(k) for k in args.failures.split(",")))
+    for path in missions:  # before any rollout: a count the smallest mission cannot lose is refused
+        rovers = load_mission(path).params.num_rovers
+        if max(args.failures) >= rovers:
+            parser.error(f"--failures: {path} has {rovers} rovers, so at most {rovers - 1} may fail")
+    rows = measure(runs, missions, args.failures)
     write_csv(args.out.with_suffix(".csv"), rows)
     chosen = [f"--mission {path}" for path in args.mission or ()]
-    chosen += [f"--failures {args.failures}"] * (args.failures != "1,2")
+    chosen += [f"--failures {','.join(map(str, args.failures))}"] * (args.failures != (1, 2))
     command = " ".join(["python docs/results/any-size/failures.py", *chosen, *(f"--run {spec}" for spec in args.run)])
     atomic_write(args.out.with_suffix(".md"), lambda f: f.write(markdown(rows, command)))
 

@@ -40,6 +40,7 @@ import numpy as np
 from any_size import MISSION  # the script beside this one
 
 from roverswarm.env import get_scenario
+from roverswarm.env.entities import ROVER
 from roverswarm.env.mars import NEVER, EnvState, observe_radii
 from roverswarm.env.missions import load_mission
 from roverswarm.jaxcache import enable_compilation_cache
@@ -53,46 +54,68 @@ FLAG = 8
 """A token's flag feature (:mod:`roverswarm.env.entities`): for a rover token, it has failed."""
 
 
+def one_failed_in_view(view, group: int) -> tuple[object, np.ndarray]:
+    """``view`` with every failed rover's token but the nearest hidden (masked and moved behind
+    the rover tokens kept, within the first ``group`` tokens, the rovers'), and [N] which
+    rovers saw more than one failed rover."""
+    tokens, mask = np.asarray(view.tokens), np.asarray(view.mask)
+    failed = (tokens[..., 4 + ROVER] > 0) & (tokens[..., FLAG] > 0) & mask  # [N, M]
+    failed[:, group:] = False
+    dist = np.where(failed, np.sum(np.square(tokens[..., :2]), axis=-1), np.inf)
+    hidden = failed & (np.arange(failed.shape[1]) != np.argmin(dist, axis=1)[:, None])
+    order = np.argsort(hidden[:, :group], axis=1, kind="stable")  # the kept rover tokens first, in their order
+    mask = mask & ~hidden
+    tokens = np.where(mask[..., None], tokens, 0.0)
+    tokens[:, :group] = np.take_along_axis(tokens[:, :group], order[..., None], axis=1)
+    mask[:, :group] = np.take_along_axis(mask[:, :group], order, axis=1)
+    return view.replace(tokens=tokens, mask=mask), hidden.any(axis=1)
+
+
 def standstill(spec: str, seed: int, data: Rollout, fail_step: np.ndarray, lost: np.ndarray, params) -> None:
-    """``--standstill``: the working rovers of the ``lost`` episodes that stood still at the end,
-    and the policy's action at each one's last state, as it is and with one failed rover in view."""
+    """``--standstill``: the working rovers of the ``lost`` episodes that stood still at the end
+    with more than one failed rover in view, and the actor's action (before any safety layer)
+    in the last state it acted in, as it is and with one failed rover in view."""
     run = Run(spec)
     family = learner_family(run.config.learner.algo)
     acting = family.acting(run.config)
+    observe = family.view(acting)
+    if observe is None or run.config.learner.ensemble > 1:
+        print("  standstill: needs a run of one policy per seed over the entity or nearest view")
+        return
     weights = run.policy(seed).weights
+    k = run.config.learner.entity_nearest
+    group = k if k else params.num_rovers - 1  # the rover tokens, first in the view
     steps = data.rover_pos.shape[1] - 1
     found = []  # (action length, action length with one failed rover seen, heads for an open POI then)
     for e in lost:
-        end, before = data.rover_pos[e, -1], data.rover_pos[e, -2]
-        state = EnvState(
-            rover_pos=end,
-            rover_vel=(end - before) / params.dt,
+        last, end = data.rover_pos[e, -2], data.rover_pos[e, -1]
+        state = EnvState(  # the state of the last step: its velocity is what moved the rovers from it
+            rover_pos=last,
+            rover_vel=(end - last) / params.dt,
             poi_pos=data.poi_pos[e],
             trap_pos=data.trap_pos[e],
-            observed=data.observed[e, -1],
-            time=np.int32(steps),
+            observed=data.observed[e, -2],
+            time=np.int32(steps - 1),
             fail_step=fail_step[e],
         )
-        view = family.view(acting)(state, params)
-        rover = np.asarray(view.tokens[..., FLAG] > 0) & np.asarray(view.mask)  # [N, M]: failed rovers' tokens
-        rover[:, params.num_rovers - 1 :] = False  # the rover tokens come first
-        hidden = rover & (np.cumsum(rover, axis=1) > 1)  # every failed rover's token but the nearest
+        view = observe(state, params)
+        fewer, seen = one_failed_in_view(view, group)
         as_is = np.asarray(family.act(acting, weights, view, None))
-        one = np.asarray(family.act(acting, weights, view.replace(mask=view.mask & ~hidden), None))
-        open_pois = data.poi_pos[e, ~data.observed[e, -1]]
-        for i in np.flatnonzero(fail_step[e] == NEVER):
-            if np.linalg.norm(end[i] - data.rover_pos[e, -6, i]) >= 0.01 or not hidden[i].any():
+        one = np.asarray(family.act(acting, weights, fewer, None))
+        open_pois = data.poi_pos[e, ~data.observed[e, -2]]
+        for i in np.flatnonzero((fail_step[e] == NEVER) & seen):
+            if np.linalg.norm(end[i] - data.rover_pos[e, -6, i]) >= 0.01:
                 continue
-            to_poi = open_pois - end[i]
+            to_poi = open_pois - last[i]
             cosine = to_poi @ one[i] / (np.linalg.norm(to_poi, axis=1) * np.linalg.norm(one[i]) + 1e-9)
             found.append((np.linalg.norm(as_is[i]), np.linalg.norm(one[i]), cosine.max() > 0.7))
     if not found:
-        print("  standstill: no working rover stood still beside more than one failed rover")
+        print("  standstill: no working rover stood still with more than one failed rover in view")
         return
     length, with_one, heads = np.asarray(found).T
     print(
-        f"  standstill: {len(found)} working rovers stood still beside more than one failed rover; their action"
-        f" {np.median(length):.3f} long (median), with one failed rover in view {np.median(with_one):.3f},"
+        f"  standstill: {len(found)} working rovers stood still with more than one failed rover in view; their"
+        f" action {np.median(length):.3f} long (median), with one failed rover in view {np.median(with_one):.3f},"
         f" then {heads.mean():.0%} head for an open POI (cosine > 0.7)"
     )
 
