@@ -1,8 +1,9 @@
 """What episodes training draws, for every learner family: the swarm size of each episode of a
 range scenario (``--scenario paper-2..10``, with ``--size-curriculum`` and
-``--size-draw-power``), rover failures (``--fail-rate``, ``--fail-count``, ``--fail-max-rovers``), episodes that
-end once every POI is observed (``--stop-when-complete``), the actions the environment gets
-(``--shield``) and the reward the learner trains on.
+``--size-draw-power``), rover failures (``--fail-rate``, ``--fail-count``,
+``--fail-max-rovers``), episodes that end once every POI is observed
+(``--stop-when-complete``), the actions the environment gets (``--shield``) and the reward
+the learner trains on.
 
 ``config`` below is a family's own config (an :class:`EpisodeOptions`) or a
 :class:`~roverswarm.config.TrainConfig`: any record with the fields of :class:`EpisodeOptions`
