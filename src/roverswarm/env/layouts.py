@@ -1,4 +1,5 @@
-"""The layout sampler: where an episode's POIs, traps and rovers start (paper section IV.A).
+"""The layout sampler: where an episode's POIs, traps and rovers start (paper section IV.A),
+and which rovers fail when (training's ``fail_rate``, :func:`draw_failures`).
 
 Shape legend: N rovers, P POIs, T traps, C candidate positions per trap or rover
 (:data:`LAYOUT_CANDIDATES`).
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 LAYOUT_CANDIDATES = 16
@@ -107,3 +109,31 @@ def draw_layout(
         else:  # a release zone is crowded: each rover also keeps clear of those placed before it
             rover_pos = place_in_turn(rover_cand, ok, 2 * params.rover_radius, None if masks is None else masks.rovers)
     return poi_pos, trap_pos, rover_pos
+
+
+NEVER = np.iinfo(np.int32).max
+"""``fail_step`` of a rover that does not fail."""
+
+
+def draw_failures(key: jax.Array, params, active_rovers) -> jax.Array:
+    """[N] fail steps: with probability ``fail_rate`` one of the ``active_rovers`` first rovers,
+    uniform, fails at a uniform step in [0, max_steps); NEVER elsewhere. With ``fail_count`` K >
+    1, k - 1 more of them, distinct and uniform, each at its own uniform step, k drawn uniformly
+    in [1, min(K, active_rovers - 1)] (one keeps working), from keys of their own: the first
+    failure is drawn as with K = 1."""
+    k_fails, k_rover, k_step = jax.random.split(key, 3)
+    fails = jax.random.uniform(k_fails) < params.fail_rate
+    index = jnp.arange(params.num_rovers)
+    rover = jax.random.randint(k_rover, (), 0, active_rovers)
+    when = jax.random.randint(k_step, (), 0, params.max_steps)
+    fail_step = jnp.where(index == rover, when, NEVER)
+    if params.fail_count > 1:
+        # fold_in(key, 1) and (key, 2) are split(key, 3)'s second and third keys: 3 on
+        k_count, k_order, k_steps = (jax.random.fold_in(key, j) for j in (3, 4, 5))
+        most = jnp.maximum(jnp.minimum(params.fail_count, active_rovers - 1), 1)
+        count = jax.random.randint(k_count, (), 1, most + 1)
+        # the other active rovers in a random order; the first count - 1 of them fail too
+        draw = jnp.where((index < active_rovers) & (index != rover), jax.random.uniform(k_order, index.shape), 2.0)
+        more = jnp.argsort(jnp.argsort(draw)) < count - 1
+        fail_step = jnp.where(more, jax.random.randint(k_steps, index.shape, 0, params.max_steps), fail_step)
+    return jnp.where(fails, fail_step, NEVER).astype(jnp.int32)

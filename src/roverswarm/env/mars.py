@@ -34,7 +34,7 @@ import numpy as np
 from flax import struct
 
 from roverswarm.env.autoreset import where_done
-from roverswarm.env.layouts import Masks, draw_layout
+from roverswarm.env.layouts import NEVER, Masks, draw_failures, draw_layout
 from roverswarm.errors import UserError
 
 ACTION_SIZE = 2
@@ -97,10 +97,6 @@ class EnvState:
     rover_mask: jax.Array | None = None  # [N] bool, the rover exists
     poi_mask: jax.Array | None = None  # [P] bool
     trap_mask: jax.Array | None = None  # [T] bool
-
-
-NEVER = np.iinfo(np.int32).max
-"""``fail_step`` of a rover that does not fail."""
 
 
 def count_text(params: EnvParams) -> str:
@@ -196,7 +192,7 @@ def reset(key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
     fail_step = jnp.full((n,), NEVER, jnp.int32)
     if params.fail_rate is not None:
         active = n if params.active_rovers is None else params.active_rovers
-        fail_step = _draw_failure(jax.random.fold_in(key, 3), params, active)
+        fail_step = draw_failures(jax.random.fold_in(key, 3), params, active)
     state = EnvState(
         rover_pos=jnp.asarray(rover_pos, jnp.float32),
         rover_vel=jnp.zeros((n, 2)),
@@ -211,30 +207,6 @@ def reset(key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
     )
     state = state.replace(observed=_observed_now(state, params))
     return observe(state, params), state
-
-
-def _draw_failure(key: jax.Array, params: EnvParams, active_rovers) -> jax.Array:
-    """[N] fail steps: with probability ``fail_rate`` one of the ``active_rovers`` first rovers,
-    uniform, fails at a uniform step in [0, max_steps); NEVER elsewhere. With ``fail_count`` K >
-    1, k - 1 more of them, distinct and uniform, each at its own uniform step, k drawn uniformly
-    in [1, min(K, active_rovers - 1)] (one keeps working), from keys of their own: the first
-    failure is drawn as with K = 1."""
-    k_fails, k_rover, k_step = jax.random.split(key, 3)
-    fails = jax.random.uniform(k_fails) < params.fail_rate
-    index = jnp.arange(params.num_rovers)
-    rover = jax.random.randint(k_rover, (), 0, active_rovers)
-    when = jax.random.randint(k_step, (), 0, params.max_steps)
-    fail_step = jnp.where(index == rover, when, NEVER)
-    if params.fail_count > 1:
-        # fold_in(key, 1) and (key, 2) are split(key, 3)'s second and third keys: 3 on
-        k_count, k_order, k_steps = (jax.random.fold_in(key, j) for j in (3, 4, 5))
-        most = jnp.maximum(jnp.minimum(params.fail_count, active_rovers - 1), 1)
-        count = jax.random.randint(k_count, (), 1, most + 1)
-        # the other active rovers in a random order; the first count - 1 of them fail too
-        draw = jnp.where((index < active_rovers) & (index != rover), jax.random.uniform(k_order, index.shape), 2.0)
-        more = jnp.argsort(jnp.argsort(draw)) < count - 1
-        fail_step = jnp.where(more, jax.random.randint(k_steps, index.shape, 0, params.max_steps), fail_step)
-    return jnp.where(fails, fail_step, NEVER).astype(jnp.int32)
 
 
 def other_rovers(num_rovers: int) -> np.ndarray:
