@@ -134,7 +134,9 @@ def main() -> None:
     write_csv(args.out.with_suffix(".csv"), rows)
     chosen = [f"--mission {path}" for path in args.mission or ()]
     chosen += [f"--failures {','.join(map(str, args.failures))}"] * (args.failures != (1, 2))
-    command = " ".join(["python docs/results/any-size/failures.py", *chosen, *(f"--run {spec}" for spec in args.run)])
+    chosen += [f"--run {spec}" for spec in args.run]
+    chosen += [f"--out {args.out}"] * (args.out.resolve() != (HERE / "failures").resolve())
+    command = " ".join(["python docs/results/any-size/failures.py", *chosen])
     atomic_write(args.out.with_suffix(".md"), lambda f: f.write(markdown(rows, command)))
 
 
