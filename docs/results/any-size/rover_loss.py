@@ -40,7 +40,7 @@ import numpy as np
 from any_size import MISSION  # the script beside this one
 
 from roverswarm.env import get_scenario
-from roverswarm.env.entities import ROVER
+from roverswarm.env.entities import FLAG, ROVER
 from roverswarm.env.mars import NEVER, EnvState, observe_radii
 from roverswarm.env.missions import load_mission
 from roverswarm.jaxcache import enable_compilation_cache
@@ -49,9 +49,6 @@ from roverswarm.rollout import MissionStats, Rollout, rollout
 from roverswarm.runs import Run, load_policy
 from roverswarm.steering import FAILED_MARGIN
 from roverswarm.stress import random_failures
-
-FLAG = 8
-"""A token's flag feature (:mod:`roverswarm.env.entities`): for a rover token, it has failed."""
 
 
 def one_failed_in_view(view, group: int) -> tuple[object, np.ndarray]:

@@ -56,6 +56,8 @@ LEAD_CAP = 2.0
 """A POI's lead is clipped to [-LEAD_CAP, LEAD_CAP] (the default map's diagonal is 2.8)."""
 ROVER, POI, TRAP = 0, 1, 2
 """Positions of the type one-hot in a token's features (after the first four)."""
+FLAG = 8
+"""Position of the flag in a token's features: a rover has failed, a POI has been observed."""
 LEAD, CLAIM = 9, 10
 """Positions of the lead and the claim lead in a token's features (the last two)."""
 POI_ORDERS = ("nearest", "free", "matched")
