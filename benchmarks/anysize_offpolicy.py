@@ -34,10 +34,11 @@ import jax.numpy as jnp
 
 from roverswarm.algos.maddpg import update
 from roverswarm.buffers import compact
-from roverswarm.config import PRESETS, validate, with_options
+from roverswarm.config import validate, with_options
 from roverswarm.experiments.timing import chunk_seconds, fill, median_seconds, paired_ratio
 from roverswarm.jaxcache import enable_compilation_cache
 from roverswarm.learners import offpolicy
+from roverswarm.presets import PRESETS
 
 TIMED = {"seeds": 1, "episodes": 40_000, "log_every": 200, "warmup": 500}
 """The ``anysize-ddpg`` preset timed: one seed, chunks of 200 episodes, a short warm-up."""

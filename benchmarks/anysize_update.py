@@ -38,10 +38,11 @@ import jax.numpy as jnp
 
 from roverswarm.algos.ppo import Batch, PPOState, gaussian_log_prob, init_ppo, update_minibatch
 from roverswarm.algos.ppo_networks import policy_networks
-from roverswarm.config import PRESETS, validate
+from roverswarm.config import validate
 from roverswarm.env.mars import ACTION_SIZE, observation_size, reset, step_env
 from roverswarm.experiments.timing import paired_ratio
 from roverswarm.learners.onpolicy import configure
+from roverswarm.presets import PRESETS
 
 B1, B2, ADAM_EPS = 0.9, 0.999, 1e-5
 """Adam's decay rates (optax's defaults) and the eps the presets use."""

@@ -59,12 +59,13 @@ from roverswarm.algos.learner import init_learner
 from roverswarm.algos.maddpg import update
 from roverswarm.buffers import compact
 from roverswarm.buffers.base import Transition
-from roverswarm.config import PRESETS, TrainConfig, validate, with_options
+from roverswarm.config import TrainConfig, validate, with_options
 from roverswarm.env.mars import ACTION_SIZE, observation_size
 from roverswarm.experiments.timing import chunk_seconds, fill, median_seconds, paired_ratio
 from roverswarm.jaxcache import enable_compilation_cache
 from roverswarm.learners import FAMILIES, onpolicy
 from roverswarm.learners.offpolicy import run_buffer
+from roverswarm.presets import PRESETS
 
 REFERENCE_SECONDS_N3 = 90.0
 

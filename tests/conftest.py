@@ -118,7 +118,8 @@ def tiny_ppo_config():
     """A small, fast MAPPO configuration (the mappo preset, shrunk) shared by the PPO tests."""
     import dataclasses
 
-    from roverswarm.config import MAPPO, with_options
+    from roverswarm.config import with_options
+    from roverswarm.presets import MAPPO
 
     return dataclasses.replace(
         with_options(MAPPO, {"hidden": (16,), "epochs": 2, "minibatches": 2}),

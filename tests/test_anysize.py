@@ -14,7 +14,7 @@ import pytest
 from roverswarm import train
 from roverswarm.algos import ppo
 from roverswarm.algos.ppo_networks import swarm_tokens
-from roverswarm.config import ANYSIZE, validate, with_options
+from roverswarm.config import validate, with_options
 from roverswarm.env import get_scenario, reset
 from roverswarm.env.entities import (
     CLAIM,
@@ -32,6 +32,7 @@ from roverswarm.episodes import reset_all, size_cap, training_params
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
 from roverswarm.learners.onpolicy import collect, configure, make_batch
+from roverswarm.presets import ANYSIZE
 from roverswarm.runs import Run
 
 
@@ -390,8 +391,8 @@ def test_the_poi_order_reaches_every_view_a_policy_acts_on(poi_order):
     asked (a layout where that differs from the plain cut)."""
     from roverswarm import export, export_numpy
     from roverswarm.algos.ppo_networks import policy_networks
-    from roverswarm.config import ANYSIZE_DDPG
     from roverswarm.learners.offpolicy import view_of
+    from roverswarm.presets import ANYSIZE_DDPG
 
     params = get_scenario("paper-6")
     _, state = reset(jax.random.PRNGKey(3), params)

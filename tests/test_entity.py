@@ -448,8 +448,9 @@ def test_networks_first_made_inside_a_trace_serve_later_calls():
     the memory check's jax.eval_shape, keeping that trace's arrays; initialising them after
     it (`roverswarm train --network entity` in a fresh process) raised UnexpectedTracerError."""
     from roverswarm.algos.ppo_networks import policy_networks
-    from roverswarm.config import ANYSIZE, validate, with_options
+    from roverswarm.config import validate, with_options
     from roverswarm.limits import network_bytes
+    from roverswarm.presets import ANYSIZE
 
     config = with_options(
         ANYSIZE, {"network": "entity", "swarm_value": False, "entity_dim": 8, "entity_heads": 2, "hidden": (8,)}

@@ -18,22 +18,14 @@ import numpy as np
 import pytest
 
 from roverswarm import export_numpy
-from roverswarm.config import (
-    ANYSIZE,
-    IPPO,
-    MAPPO,
-    SWARM,
-    TrainConfig,
-    config_to_json,
-    validate,
-    with_options,
-)
+from roverswarm.config import TrainConfig, config_to_json, validate, with_options
 from roverswarm.env import get_scenario
 from roverswarm.env.entities import EntityView, nearest_entities, observe_entities
 from roverswarm.env.mars import NEVER, EnvState, failed_rovers, observe, reset, step_env
 from roverswarm.export import SHIELD, SNIPPET, env_constants, export_run, random_states, trained_sizes
 from roverswarm.learners import learner_family
 from roverswarm.learners.base import Runner
+from roverswarm.presets import ANYSIZE, IPPO, MAPPO, SWARM
 from roverswarm.runs import CHECKPOINT, CONFIG, Run
 from roverswarm.steering import shield_actions
 from roverswarm.storage import atomic_write, save_checkpoint

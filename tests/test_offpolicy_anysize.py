@@ -19,13 +19,14 @@ from roverswarm.algos.learner import AlgoConfig, critic_inputs, init_learner
 from roverswarm.algos.maddpg import presence, update
 from roverswarm.buffers import compact, make_buffer
 from roverswarm.buffers.base import Transition
-from roverswarm.config import PRESETS, TrainConfig, validate, with_options
+from roverswarm.config import TrainConfig, validate, with_options
 from roverswarm.env.entities import ROVER, TOKEN_FEATURES, nearest_width
 from roverswarm.env.mars import ACTION_SIZE, OWN_POSITION
 from roverswarm.episodes import reset_all, training_params
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
 from roverswarm.learners import offpolicy
+from roverswarm.presets import PRESETS
 
 K = 1  # --entity-nearest
 NEAREST = {"network": "nearest", "entity_nearest": K, "share_parameters": True, "critic_neighbors": 1}

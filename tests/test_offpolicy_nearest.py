@@ -16,13 +16,14 @@ from rollouts import random_episodes  # tests/rollouts.py
 from roverswarm import train
 from roverswarm.algos.learner import actor_inputs, critic_inputs, init_learner
 from roverswarm.buffers import compact, make_buffer
-from roverswarm.config import SWARM, TrainConfig, validate, with_options
+from roverswarm.config import TrainConfig, validate, with_options
 from roverswarm.env.entities import POI, TOKEN_FEATURES, flat_tokens, nearest_width, observe_nearest
 from roverswarm.env.mars import ACTION_SIZE, reset
 from roverswarm.env.scenarios import get_scenario
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
 from roverswarm.learners import offpolicy
+from roverswarm.presets import SWARM
 from roverswarm.runs import Run
 
 K = 1  # --entity-nearest

@@ -12,13 +12,14 @@ import pytest
 
 from roverswarm.algos import ppo, ppo_networks
 from roverswarm.algos.normalize import init_obs_norm, update_obs_norm
-from roverswarm.config import MAPPO, TrainConfig, validate, with_options
+from roverswarm.config import TrainConfig, validate, with_options
 from roverswarm.env.mars import EnvParams, observation_size
 from roverswarm.env.scenarios import get_scenario
 from roverswarm.errors import UserError
 from roverswarm.learners import onpolicy
 from roverswarm.learners.onpolicy import PPO_METRICS
 from roverswarm.policies import ORACLE, RANDOM
+from roverswarm.presets import MAPPO
 from roverswarm.rollout import normalized_score, rollout
 from roverswarm.runs import Run
 from roverswarm.trainer import train
@@ -181,7 +182,9 @@ def test_inputs_and_deterministic_actions(tiny_ppo_config):
     config = tiny_ppo_config
     state = ppo.init_ppo(jax.random.PRNGKey(0), config, n, o)
     actions = ppo.act(config.learner, config.ppo, state.actor, 10 * obs)
-    mean, _ = ppo_networks.networks(config.learner, config.ppo)[0].apply(state.actor, ppo_networks.actor_inputs(10 * obs))
+    mean, _ = ppo_networks.networks(config.learner, config.ppo)[0].apply(
+        state.actor, ppo_networks.actor_inputs(10 * obs)
+    )
     assert actions.shape == (5, n, 2)
     np.testing.assert_array_equal(actions, np.clip(mean, -1, 1))
 

@@ -19,12 +19,13 @@ from scipy import stats
 
 import roverswarm.experiments.pool as pool_module
 from roverswarm.cli import main
-from roverswarm.config import MAPPO, PRESETS, config_from_json, with_options
+from roverswarm.config import config_from_json, with_options
 from roverswarm.errors import RunStopped, UserError
 from roverswarm.experiments import ReproduceConfig, reproduce
 from roverswarm.experiments.arms import plan
 from roverswarm.experiments.results import PAPER_TABLE1
 from roverswarm.experiments.significance import holm, paired_change, paired_p, relative_change
+from roverswarm.presets import MAPPO, PRESETS
 from roverswarm.runs import write_csv
 
 SCENARIOS = ("paper-2", "paper-3")

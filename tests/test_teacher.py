@@ -13,13 +13,14 @@ import pytest
 from roverswarm import train
 from roverswarm.algos import ppo
 from roverswarm.algos.ppo_networks import policy_networks
-from roverswarm.config import ANYSIZE, TrainConfig, validate, with_options
+from roverswarm.config import TrainConfig, validate, with_options
 from roverswarm.env.entities import greedy_match
 from roverswarm.episodes import reset_all, training_params
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
 from roverswarm.learners.onpolicy import collect, configure, make_batch
 from roverswarm.oracle import greedy_plan, oracle_actions
+from roverswarm.presets import ANYSIZE
 from roverswarm.runs import Run
 
 

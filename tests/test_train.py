@@ -20,11 +20,12 @@ import pytest
 
 import roverswarm.trainer as trainer_module
 from roverswarm.cli import main
-from roverswarm.config import REFERENCE, SWARM, TrainConfig, config_from_json, validate, with_options
+from roverswarm.config import TrainConfig, config_from_json, validate, with_options
 from roverswarm.errors import RunStopped, UserError
 from roverswarm.evaluate import evaluate_run
 from roverswarm.learners import FAMILIES, offpolicy
 from roverswarm.learners.offpolicy import run_buffer
+from roverswarm.presets import REFERENCE, SWARM
 from roverswarm.runs import CHECKPOINT, LOCK, METRICS, Run, read_metrics
 from roverswarm.storage import atomic_write
 from roverswarm.trainer import checkpoint_due, train

@@ -21,15 +21,16 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from roverswarm.algos.learner import AlgoConfig
     from roverswarm.buffers.base import ReplayConfig
-    from roverswarm.config import PRESETS, TrainConfig
+    from roverswarm.config import TrainConfig
     from roverswarm.evaluate import evaluate_run
+    from roverswarm.presets import PRESETS
     from roverswarm.runs import Run
     from roverswarm.trainer import Result, train
 
 _EXPORTS = {
     "AlgoConfig": "roverswarm.algos.learner",
     "ReplayConfig": "roverswarm.buffers.base",
-    "PRESETS": "roverswarm.config",
+    "PRESETS": "roverswarm.presets",
     "TrainConfig": "roverswarm.config",
     "evaluate_run": "roverswarm.evaluate",
     "Run": "roverswarm.runs",

@@ -19,7 +19,7 @@ from rich.console import Console
 from rich.table import Table
 
 from roverswarm.animation import RenderConfig
-from roverswarm.config import PRESETS, TrainConfig, resumed_config
+from roverswarm.config import TrainConfig, resumed_config
 from roverswarm.errors import RunStopped, UserError, require
 from roverswarm.evaluate import EvaluateConfig
 from roverswarm.experiments import ReproduceConfig, reproduce
@@ -27,6 +27,7 @@ from roverswarm.experiments.sweep import SweepConfig
 from roverswarm.export import CHECK_OBSERVATIONS, ExportConfig, export_run
 from roverswarm.limits import read_config
 from roverswarm.mission import MissionConfig, MissionRunConfig
+from roverswarm.presets import PRESETS
 from roverswarm.runs import CONFIG
 from roverswarm.trainer import train
 

@@ -41,12 +41,13 @@ from pathlib import Path
 import numpy as np
 
 from roverswarm import train
-from roverswarm.config import PRESETS, TrainConfig, with_options
+from roverswarm.config import TrainConfig, with_options
 from roverswarm.env.entities import POI_ORDERS
 from roverswarm.evaluate import evaluate_run
 from roverswarm.experiments.sweep import figure, markdown, read_table
 from roverswarm.jaxcache import enable_compilation_cache
 from roverswarm.limits import read_config
+from roverswarm.presets import PRESETS
 from roverswarm.runs import CONFIG, METRICS, read_metrics, training_seconds, write_csv
 from roverswarm.storage import atomic_write
 

@@ -21,12 +21,13 @@ import optax
 
 from roverswarm.algos.ppo import init_ppo
 from roverswarm.algos.ppo_networks import policy_networks
-from roverswarm.config import ANYSIZE, validate
+from roverswarm.config import validate
 from roverswarm.env import get_scenario, reset
 from roverswarm.env.mars import step_env
 from roverswarm.jaxcache import enable_compilation_cache
 from roverswarm.learners.onpolicy import configure
 from roverswarm.oracle import greedy_plan, oracle_actions
+from roverswarm.presets import ANYSIZE
 
 EPISODES = 100
 NOISE = 0.3

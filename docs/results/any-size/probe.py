@@ -28,9 +28,9 @@ import numpy as np
 from any_size import anysize, stress  # the script beside this one
 
 from roverswarm import train
-from roverswarm.config import PRESETS
 from roverswarm.evaluate import evaluate_run
 from roverswarm.jaxcache import enable_compilation_cache
+from roverswarm.presets import PRESETS
 from roverswarm.runs import CONFIG
 
 

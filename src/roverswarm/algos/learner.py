@@ -31,7 +31,7 @@ Algo = Literal["maddpg", "ddpg", "mappo", "ippo"]
 class AlgoConfig:
     """Learner hyper-parameters. Defaults are tuned to learn with continuous actions (wider
     networks, smaller learning rates than the reference code's 2x64 and 1e-2; see
-    ``roverswarm.config.REFERENCE``)."""
+    ``roverswarm.presets.REFERENCE``)."""
 
     algo: Algo = "maddpg"
     """`maddpg`: centralised critics Q_i(x, a_1..a_N); `ddpg`: local critics Q_i(o_i, a_i);

@@ -13,10 +13,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Literal
 
-from roverswarm.config import PRESETS, TrainConfig, resumed_config, with_options
+from roverswarm.config import TrainConfig, resumed_config, with_options
 from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
 from roverswarm.limits import read_config
+from roverswarm.presets import PRESETS
 from roverswarm.runs import (
     CHECKPOINT,
     CONFIG,

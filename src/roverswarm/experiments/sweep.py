@@ -40,7 +40,7 @@ import yaml
 from rich.console import Console
 from rich.live import Live
 
-from roverswarm.config import PRESETS, validate, with_options
+from roverswarm.config import validate, with_options
 from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
 from roverswarm.experiments.arms import Backend, GridRun, check_backend, episodes_done, status
@@ -48,6 +48,7 @@ from roverswarm.experiments.live import Summary
 from roverswarm.experiments.pool import default_jobs, train_runs
 from roverswarm.experiments.remote import run_ray
 from roverswarm.limits import check_memory, open_limited, read_limited, safe_name, training_parts
+from roverswarm.presets import PRESETS
 from roverswarm.runs import METRICS, folder_lock, markdown_table, read_metrics, training_seconds, write_csv
 from roverswarm.storage import atomic_write
 
