@@ -1,6 +1,6 @@
 """The off-policy family over the nearest view (``--network nearest --share-parameters``): its
 replay rebuilds the view the actors saw, its critic sees the same under any order of the
-rovers, and its one actor drives swarms of sizes it never trained on."""
+rovers, and MADDPG learns one actor across sizes that drives swarms of a size it never trained on."""
 
 from __future__ import annotations
 
@@ -116,12 +116,14 @@ def test_the_off_policy_nearest_options_are_checked(options, pattern):
 
 
 @pytest.mark.slow
-def test_the_swarm_preset_over_the_nearest_view_beats_random_on_sizes_it_never_saw(tmp_path):
-    """The swarm preset (MATD3 over shared networks) with the nearest view (2 of each type),
-    3000 episodes on paper-2: every seed beats random by a wide margin at paper-2 and at
-    paper-3 and paper-5, never trained on (0.61 / 0.68, 0.50 / 0.48, 0.49 / 0.44 when written)."""
-    options = {**NEAREST, "entity_nearest": 2, "scenario": "paper-2", "episodes": 3000, "seeds": 2}
-    train(with_options(SWARM, options), out=tmp_path, progress=False)
+def test_the_swarm_preset_over_the_nearest_view_learns_across_sizes_and_beats_random_on_one_it_never_saw(tmp_path):
+    """MADDPG across swarm sizes: the swarm preset (MATD3 over shared networks, its centralised
+    critic over each rover and its nearest other) with the nearest view (2 of each type), 3000
+    episodes on swarms of 2 and 3 drawn per episode: every seed beats random by a wide margin
+    at paper-2 and paper-3 and at paper-5, never trained on (0.34 / 0.47, 0.38 / 0.38,
+    0.35 / 0.34 when written)."""
+    options = {**NEAREST, "entity_nearest": 2, "scenario": "paper-2..3", "size_curriculum": 1000, "episodes": 3000}
+    train(with_options(SWARM, options | {"seeds": 2}), out=tmp_path, progress=False)
     rows = evaluate_run(tmp_path, episodes=300, scenario="paper-2,3,5")
     scores = {(r["scenario"], r["policy"]): r["normalized_score"] for r in rows if r["policy"].startswith("maddpg")}
-    assert len(scores) == 6 and min(scores.values()) > 0.3, scores
+    assert len(scores) == 6 and min(scores.values()) > 0.2, scores
