@@ -65,7 +65,11 @@ def stress_rows(
     starts and keys) with ``failures`` random rovers failing at random steps before that
     policy's episode was complete (or before its end, if it never was). Rovers and relative
     times are drawn once, shared by all policies. Returns the summary rows and, per policy,
-    (the first failure's time as a fraction of the time to complete [E], success [E]) for the plot."""
+    (the first failure's time as a fraction of the time to complete [E], success [E]) for the plot.
+
+    The failures' key ``fold_in(key, 1)`` is also :func:`rollout`'s run key (``split(key)[1]``),
+    which only a stochastic policy reads, one key per episode and step; the layouts come from the
+    other half, so the failures are drawn independently of the layouts."""
     key = jax.random.PRNGKey(seed)
     rows, curves = [], {}
     for policy in policies:
