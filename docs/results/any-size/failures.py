@@ -12,6 +12,12 @@ three POIs each at worst), with one and with two random rover failures, for ever
 run beside the oracle. A run is driven as it is and behind the safety layer; ``RUN:shield``
 only behind it (a run trained behind the layer). ``--mission`` (repeatable) and ``--failures``
 measure other missions and failure counts. Writes ``failures.csv`` and ``failures.md``.
+
+``--failed-margin M`` (a probe) sets the clearance that the oracle's steering and the safety
+layer keep from a failed rover's edge (``roverswarm.steering.FAILED_MARGIN``, 0.03) for the
+whole measurement; minus the two bodies' radii (-0.3 for rovers of radius 0.15) makes a
+failed rover no obstacle to them, so a working rover may push against it to observe a POI
+beneath it, as the trained policies do.
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ from pathlib import Path
 
 from any_size import MISSION  # the script beside this one
 
+import roverswarm.steering
 from roverswarm.env.missions import load_mission
 from roverswarm.jaxcache import enable_compilation_cache
 from roverswarm.mission import load_policy
@@ -71,13 +78,14 @@ def measure(
     return rows
 
 
-def markdown(rows: list[dict[str, object]], command: str, episodes: int = EPISODES) -> str:
+def markdown(rows: list[dict[str, object]], command: str, episodes: int = EPISODES, margin: float | None = None) -> str:
     """One line per mission, failure count, run and layer: every seed's success beside the
-    oracle's; ``command`` reruns it."""
+    oracle's; ``command`` reruns it; ``margin``: the probe's clearance from a failed rover."""
     missions = sorted({str(r["mission"]) for r in rows})
     named = "both example missions" if missions == sorted(p.name for p in MISSIONS) else ", ".join(missions)
+    probe = "" if margin is None else f"; the oracle's and the layer's clearance from a failed rover {margin:g}"
     lines = [
-        f"# Rover loss on {named} ({episodes} episodes per row, seed 0)",
+        f"# Rover loss on {named} ({episodes} episodes per row, seed 0{probe})",
         "",
         "Success with the failures (every seed; without any failure in brackets where below 100%), "
         "then the seeds' mean POIs observed, collisions and trap contacts. "
@@ -119,8 +127,11 @@ def main() -> None:
     parser.add_argument("--mission", type=Path, action="append", help="a mission file (default: both examples)")
     parser.add_argument("--failures", type=counts, default=(1, 2), help="failure counts, comma-separated")
     parser.add_argument("--out", type=Path, default=HERE / "failures")
+    parser.add_argument("--failed-margin", type=float, help="probe: the steering's clearance from a failed rover")
     args = parser.parse_args()
     enable_compilation_cache()
+    if args.failed_margin is not None:  # read when the steering is traced, so before any rollout
+        roverswarm.steering.FAILED_MARGIN = args.failed_margin
     runs = [
         (Path(spec.removesuffix(":shield")), (True,) if spec.endswith(":shield") else (False, True))
         for spec in args.run
@@ -135,9 +146,11 @@ def main() -> None:
     chosen = [f"--mission {path}" for path in args.mission or ()]
     chosen += [f"--failures {','.join(map(str, args.failures))}"] * (args.failures != (1, 2))
     chosen += [f"--run {spec}" for spec in args.run]
+    chosen += [f"--failed-margin {args.failed_margin:g}"] * (args.failed_margin is not None)
     chosen += [f"--out {args.out}"] * (args.out.resolve() != (HERE / "failures").resolve())
     command = " ".join(["python docs/results/any-size/failures.py", *chosen])
-    atomic_write(args.out.with_suffix(".md"), lambda f: f.write(markdown(rows, command)))
+    markdown_text = markdown(rows, command, margin=args.failed_margin)
+    atomic_write(args.out.with_suffix(".md"), lambda f: f.write(markdown_text))
 
 
 if __name__ == "__main__":
