@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import imageio.v2 as imageio
 import numpy as np
 import pytest
 
-from roverswarm.cli import main
+from roverswarm.cli import main, print_table
 from roverswarm.env import SCENARIOS, get_scenario
 from roverswarm.env.mars import observation_size
 
@@ -19,6 +20,27 @@ def test_scenarios_lists_every_preset_with_sizes(capsys):
     for name in SCENARIOS:
         assert name in out
         assert str(observation_size(get_scenario(name))) in out
+
+
+def test_a_table_too_wide_for_80_columns_keeps_every_number_and_word(capsys, monkeypatch):
+    """Piped output (80 columns): an evaluation table of a large swarm is printed wider rather
+    than with its numbers cut short; a table that fits stays within the 80 columns."""
+    monkeypatch.setenv("COLUMNS", "80")
+    rows = [
+        {"scenario": "paper-40", "policy": f"mappo seed {i}", "episode_reward": -15084.966 + i, "collisions": 137.53,
+         "trap_contacts": 264.96, "coverage_distance": 16.113, "pois_observed": 22.48, "normalized_score": 1.009}
+        for i in range(3)
+    ]  # fmt: skip
+    print_table("wide", rows, ("scenario", "policy"))
+    out = capsys.readouterr().out
+    lines = out.splitlines()
+    assert max(map(len, lines)) > 80 and "…" not in out
+    for i in range(3):
+        assert any(re.search(f"paper-40 │ mappo seed {i} │ +{-15084.966 + i:.3f} │", line) for line in lines), out
+    for word in ("normalized", "score", "contacts", "coverage", "distance", "observed", "264.960", "1.009"):
+        assert word in out
+    assert main(["scenarios"]) == 0
+    assert max(map(len, capsys.readouterr().out.splitlines())) <= 80
 
 
 def test_render_writes_an_animation_and_its_last_frame(tmp_path):

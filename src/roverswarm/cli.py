@@ -16,6 +16,7 @@ from typing import Annotated, Callable, Literal, Union
 
 import tyro
 from rich.console import Console
+from rich.measure import Measurement
 from rich.table import Table
 
 from roverswarm.animation import RenderConfig
@@ -100,15 +101,24 @@ def run_sweep(cmd: SweepConfig) -> None:
 
 
 def print_table(title: str, rows: list[dict[str, object]], left: tuple[str, ...]) -> None:
-    """``rows`` as a rich table; columns named in ``left`` left-aligned, numbers to 3 decimals."""
+    """``rows`` as a rich table; columns named in ``left`` left-aligned, numbers to 3 decimals.
+    Nothing is cut short: each column is at least as wide as its longest word (a policy's whole
+    name), and where the terminal (or the 80 columns of output piped to a file) is too
+    narrow for that, the table is printed at its full width."""
+    cells = {c: [f"{v:.3f}" if isinstance(v, float) else str(v) for v in (r[c] for r in rows)] for c in rows[0]}
     table = Table(title=title)
-    for column in rows[0]:
+    for column, values in cells.items():
+        header, no_wrap = column.replace("_", " "), column == "policy"
+        words = [*(values if no_wrap else (w for v in values for w in v.split())), *header.split()]
         table.add_column(
-            column.replace("_", " "), justify="left" if column in left else "right", no_wrap=column == "policy"
+            header, justify="left" if column in left else "right", no_wrap=no_wrap, min_width=max(map(len, words))
         )
-    for row in rows:
-        table.add_row(*(f"{v:.3f}" if isinstance(v, float) else str(v) for v in row.values()))
-    Console().print(table)
+    for i in range(len(rows)):
+        table.add_row(*(values[i] for values in cells.values()))
+    console = Console()
+    needed = Measurement.get(console, console.options.update_width(10_000), table)
+    # rich squeezes a table below its columns' minimums when it must fit: at its full width it need not
+    (console if needed.minimum <= console.width else Console(width=needed.maximum)).print(table)
 
 
 def run_evaluate(cmd: EvaluateConfig) -> None:
