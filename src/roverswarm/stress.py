@@ -67,9 +67,11 @@ def stress_rows(
     times are drawn once, shared by all policies. Returns the summary rows and, per policy,
     (the first failure's time as a fraction of the time to complete [E], success [E]) for the plot.
 
-    The failures' key ``fold_in(key, 1)`` is also :func:`rollout`'s run key (``split(key)[1]``),
-    which only a stochastic policy reads, one key per episode and step; the layouts come from the
-    other half, so the failures are drawn independently of the layouts."""
+    Under JAX's partitionable threefry (the default from JAX 0.5) the failures' key
+    ``fold_in(key, 1)`` is :func:`rollout`'s run key ``split(key)[1]``, whose splits are the
+    episodes' keys. Only the random policy reads those (for its actions); the oracle and trained
+    policies do not, and the layouts come from ``split(key)[0]``: the failures are independent
+    of the layouts, and of every policy's actions but random's."""
     key = jax.random.PRNGKey(seed)
     rows, curves = [], {}
     for policy in policies:
