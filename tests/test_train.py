@@ -365,16 +365,19 @@ def test_a_replay_larger_than_the_machine_is_refused_before_it_is_allocated(tiny
         train(config, progress=False)
 
 
-def test_evaluate_reports_policies_beside_random_and_oracle(unbroken, capsys):
+def test_evaluate_reports_policies_beside_random_and_oracle(unbroken, capsys, monkeypatch):
     rows = evaluate_run(unbroken.out, episodes=50)
     names = [r["policy"] for r in rows]
     assert names == ["random", "oracle", "maddpg seed 0", "maddpg seed 1"]
     assert rows[0]["normalized_score"] == 0.0 and rows[1]["normalized_score"] == 1.0
     learner = Run(unbroken.out).learner
     np.testing.assert_array_equal(jax.tree.leaves(learner.actor)[0], jax.tree.leaves(unbroken.learner.actor)[0])
+    monkeypatch.setenv("FORCE_COLOR", "1")  # a terminal: the command shows its progress bar
+    monkeypatch.setenv("TERM", "xterm")
     assert main(["evaluate", str(unbroken.out), "--episodes", "50"]) == 0
     out = capsys.readouterr().out
-    assert "oracle" in out and "maddpg seed 1" in out and "1.000" in out
+    assert "maddpg seed 1, 50 episodes" in out  # the bar ran, and left the table's numbers alone:
+    assert all(f"{r['episode_reward']:.3f}" in out and f"{r['normalized_score']:.3f}" in out for r in rows)
 
 
 @pytest.mark.slow

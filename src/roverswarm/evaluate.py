@@ -12,6 +12,8 @@ from typing import Literal
 
 import jax
 import tyro
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from roverswarm.env.mars import EnvParams
 from roverswarm.env.scenarios import get_scenario, range_sizes, scenario_sizes
@@ -59,11 +61,13 @@ def evaluate_run(
     partners: Partners = "own",
     scenario: str | None = None,
     shield: bool = False,
+    progress: bool = False,
 ) -> list[dict[str, float | str]]:
     """Deterministic episodes of every seed's trained policy in run folder ``out``, beside the
     random and oracle policies on the same episodes (same layouts), with the normalised score.
     Runs with policy ensembles, and ``partners``, work as :meth:`Run.policies` says; the policy
-    names say which. ``scenario`` and ``shield``: see :class:`EvaluateConfig`.
+    names say which. ``scenario`` and ``shield``: see :class:`EvaluateConfig`. ``progress``: a
+    bar over the policies and sizes while they run, on a terminal (gone when done).
 
     Returns one row per policy (and size): ``policy``, the :meth:`EpisodeStats.summary`
     metrics and ``normalized_score``; with several sizes, or a ``scenario``, also ``scenario``.
@@ -74,17 +78,27 @@ def evaluate_run(
     check_memory(evaluation_parts(run.config, run.params, episodes), "this evaluation")
     key = jax.random.PRNGKey(seed)
     named = scenario is not None or (run.config.mission is None and range_sizes(run.config.scenario) is not None)
-    rows = []
+    plan = []
     for name, params in _targets(run, scenario):
         policies = run.policies(sub_policies, seed, partners, rovers=params.num_rovers)
-        policies = [shielded(p) for p in policies] if shield else policies
-        results = {p.name: rollout(p, key, params, episodes).stats.summary() for p in (RANDOM, ORACLE, *policies)}
-        low, high = results["random"]["episode_reward"], results["oracle"]["episode_reward"]
-        for policy, summary in results.items():
-            score = normalized_score(summary["episode_reward"], low, high)
-            rows.append(
-                {**({"scenario": name} if named else {}), "policy": policy, **summary, "normalized_score": score}
-            )
+        plan.append((name, params, [RANDOM, ORACLE, *(map(shielded, policies) if shield else policies)]))
+    rows = []
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    console = Console()
+    with Progress(*columns, console=console, transient=True, disable=not (progress and console.is_terminal)) as bar:
+        task = bar.add_task("evaluating", total=sum(len(policies) for *_, policies in plan))
+        for name, params, policies in plan:
+            results = {}
+            for policy in policies:
+                bar.update(task, description=f"{name}: {policy.name}, {episodes} episodes", refresh=True)
+                results[policy.name] = rollout(policy, key, params, episodes).stats.summary()
+                bar.advance(task)
+            low, high = results["random"]["episode_reward"], results["oracle"]["episode_reward"]
+            for policy, summary in results.items():
+                score = normalized_score(summary["episode_reward"], low, high)
+                rows.append(
+                    {**({"scenario": name} if named else {}), "policy": policy, **summary, "normalized_score": score}
+                )
     return rows
 
 
