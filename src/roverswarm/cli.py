@@ -124,7 +124,9 @@ def print_table(title: str, rows: list[dict[str, object]], left: tuple[str, ...]
 def run_evaluate(cmd: EvaluateConfig) -> None:
     from roverswarm.evaluate import evaluate_run
 
-    rows = evaluate_run(cmd.run, cmd.episodes, cmd.seed, cmd.sub_policies, cmd.partners, cmd.scenario, cmd.shield, True)
+    rows = evaluate_run(
+        cmd.run, cmd.episodes, cmd.seed, cmd.sub_policies, cmd.partners, cmd.scenario, cmd.shield, progress=True
+    )
     keys = ("scenario", "policy") if "scenario" in rows[0] else ("policy",)
     print_table(f"{cmd.run}: {cmd.episodes} deterministic episodes, seed {cmd.seed}", rows, keys)
 
