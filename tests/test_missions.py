@@ -357,6 +357,16 @@ def test_the_oracle_completes_the_example_missions(name):
 # ----------------------------------------------------------------------------- commands
 
 
+def test_mission_stress_prints_its_markdown_table_one_row_per_line(tmp_path, capsys, monkeypatch):
+    """Piped (80 columns), the table a user may paste into a report keeps each row on one line."""
+    monkeypatch.setenv("COLUMNS", "80")
+    mission = str(EXAMPLES / "mission.yaml")
+    assert main(["mission", "stress", mission, "--policy", "random", "--episodes", "8", "--out", str(tmp_path)]) == 0
+    table = [line for line in capsys.readouterr().out.splitlines() if line.startswith("|")]
+    assert len(table) == 2 + 4 and max(map(len, table)) > 80, table
+    assert all(line.endswith("|") and line.count("|") == table[0].count("|") for line in table), table
+
+
 def test_mission_run_writes_routes_animation_and_metrics(tmp_path, capsys):
     out = tmp_path / "out"
     assert (

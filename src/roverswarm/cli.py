@@ -96,7 +96,7 @@ def run_sweep(cmd: SweepConfig) -> None:
     from roverswarm.experiments.sweep import sweep
 
     table = sweep(cmd)
-    Console().print(table.read_text(), markup=False)
+    Console().print(table.read_text(), markup=False, soft_wrap=True)
     Console().print(f"wrote {table} and {table.with_suffix('.csv')}")
 
 
@@ -173,7 +173,7 @@ def run_mission(cmd: MissionConfig) -> None:
             action.animation,
             action.shield,
         )
-        console.print(result.files["metrics.md"].read_text(), markup=False)
+        console.print(result.files["metrics.md"].read_text(), markup=False, soft_wrap=True)
         console.print(f"wrote {', '.join(str(p) for p in result.files.values())}")
     else:
         from roverswarm.stress import stress_mission
@@ -188,7 +188,9 @@ def run_mission(cmd: MissionConfig) -> None:
             action.shield,
             action.failures,
         )
-        console.print(mission.markdown_table(list(rows[0]), [list(r.values()) for r in rows]), markup=False)
+        console.print(
+            mission.markdown_table(list(rows[0]), [list(r.values()) for r in rows]), markup=False, soft_wrap=True
+        )
         console.print(f"wrote {action.out / 'stress.md'}, stress.csv and stress.png")
 
 
