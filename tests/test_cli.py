@@ -22,25 +22,31 @@ def test_scenarios_lists_every_preset_with_sizes(capsys):
         assert str(observation_size(get_scenario(name))) in out
 
 
-def test_a_table_too_wide_for_80_columns_keeps_every_number_and_word(capsys, monkeypatch):
-    """Piped output (80 columns): an evaluation table of a large swarm is printed wider rather
-    than with its numbers cut short; a table that fits stays within the 80 columns."""
-    monkeypatch.setenv("COLUMNS", "80")
+@pytest.mark.parametrize("columns", [60, 80, 87, 99, 104, 140])
+def test_a_table_keeps_every_number_and_word_at_any_width(columns, capsys, monkeypatch):
+    """An evaluation table of a large swarm, with and without its scenario column, at terminal
+    widths around its own (80: output piped to a file): never a number cut short or a border
+    cropped; a table that does not fit is printed at its full width, and one that fits (the
+    scenarios, from 80 columns) stays within the width."""
+    for name in ("FORCE_COLOR", "TTY_COMPATIBLE", "TTY_INTERACTIVE"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("COLUMNS", str(columns))
     rows = [
         {"scenario": "paper-40", "policy": f"mappo seed {i}", "episode_reward": -15084.966 + i, "collisions": 137.53,
          "trap_contacts": 264.96, "coverage_distance": 16.113, "pois_observed": 22.48, "normalized_score": 1.009}
         for i in range(3)
     ]  # fmt: skip
-    print_table("wide", rows, ("scenario", "policy"))
-    out = capsys.readouterr().out
-    lines = out.splitlines()
-    assert max(map(len, lines)) > 80 and "…" not in out
-    for i in range(3):
-        assert any(re.search(f"paper-40 │ mappo seed {i} │ +{-15084.966 + i:.3f} │", line) for line in lines), out
-    for word in ("normalized", "score", "contacts", "coverage", "distance", "observed", "264.960", "1.009"):
-        assert word in out
-    assert main(["scenarios"]) == 0
-    assert max(map(len, capsys.readouterr().out.splitlines())) <= 80
+    for table in (rows, [{k: v for k, v in r.items() if k != "scenario"} for r in rows]):
+        print_table("wide", table, ("scenario", "policy"))
+        out = capsys.readouterr().out
+        lines = [line.rstrip() for line in out.splitlines() if line.strip() and line.strip() != "wide"]
+        assert "…" not in out and all(line[-1] in "┓┃┩│┘" for line in lines), out
+        for i in range(3):
+            assert any(re.search(f"mappo seed {i} │ +{-15084.966 + i:.3f} │", line) for line in lines), out
+        for word in ("normalized", "score", "contacts", "coverage", "distance", "observed", "264.960", "1.009"):
+            assert word in out
+    assert main(["scenarios"]) == 0  # its descriptions wrap to fit 80 columns
+    assert max(map(len, capsys.readouterr().out.splitlines())) <= columns or columns < 80
 
 
 def test_render_writes_an_animation_and_its_last_frame(tmp_path):

@@ -372,6 +372,11 @@ def test_evaluate_reports_policies_beside_random_and_oracle(unbroken, capsys, mo
     assert rows[0]["normalized_score"] == 0.0 and rows[1]["normalized_score"] == 1.0
     learner = Run(unbroken.out).learner
     np.testing.assert_array_equal(jax.tree.leaves(learner.actor)[0], jax.tree.leaves(unbroken.learner.actor)[0])
+    for name in ("FORCE_COLOR", "TTY_COMPATIBLE", "TTY_INTERACTIVE"):
+        monkeypatch.delenv(name, raising=False)
+    capsys.readouterr()
+    evaluate_run(unbroken.out, episodes=5, progress=True)
+    assert capsys.readouterr().out == ""  # piped: no bar, not even an empty line
     monkeypatch.setenv("FORCE_COLOR", "1")  # a terminal: the command shows its progress bar
     monkeypatch.setenv("TERM", "xterm")
     assert main(["evaluate", str(unbroken.out), "--episodes", "50"]) == 0

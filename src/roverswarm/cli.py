@@ -17,6 +17,7 @@ from typing import Annotated, Callable, Literal, Union
 import tyro
 from rich.console import Console
 from rich.measure import Measurement
+from rich.segment import Segment
 from rich.table import Table
 
 from roverswarm.animation import RenderConfig
@@ -116,9 +117,12 @@ def print_table(title: str, rows: list[dict[str, object]], left: tuple[str, ...]
     for i in range(len(rows)):
         table.add_row(*(values[i] for values in cells.values()))
     console = Console()
-    needed = Measurement.get(console, console.options.update_width(10_000), table)
-    # rich squeezes a table below its columns' minimums when it must fit: at its full width it need not
-    (console if needed.minimum <= console.width else Console(width=needed.maximum)).print(table)
+    # rich narrows a table that does not fit below its columns' minimums, and then crops it:
+    # rendered wider than the console, it is printed at its full width instead
+    lines = Segment.split_lines(console.render(table, console.options))
+    if max(map(Segment.get_line_length, lines)) > console.width:
+        console = Console(width=Measurement.get(console, console.options.update_width(10_000), table).maximum)
+    console.print(table)
 
 
 def run_evaluate(cmd: EvaluateConfig) -> None:

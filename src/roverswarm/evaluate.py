@@ -6,6 +6,9 @@ Every policy runs the same episodes (same layouts, same key); the normalised sco
 
 from __future__ import annotations
 
+import itertools
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -78,21 +81,16 @@ def evaluate_run(
     check_memory(evaluation_parts(run.config, run.params, episodes), "this evaluation")
     key = jax.random.PRNGKey(seed)
     named = scenario is not None or (run.config.mission is None and range_sizes(run.config.scenario) is not None)
-    plan = []
-    for name, params in _targets(run, scenario):
-        policies = run.policies(sub_policies, seed, partners, rovers=params.num_rovers)
-        plan.append((name, params, [RANDOM, ORACLE, *(map(shielded, policies) if shield else policies)]))
+    targets = _targets(run, scenario)
     rows = []
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
-    console = Console()
-    with Progress(*columns, console=console, transient=True, disable=not (progress and console.is_terminal)) as bar:
-        task = bar.add_task("evaluating", total=sum(len(policies) for *_, policies in plan))
-        for name, params, policies in plan:
+    with _progress(progress) as show:
+        for name, params in targets:
+            policies = run.policies(sub_policies, seed, partners, rovers=params.num_rovers)
+            policies = [RANDOM, ORACLE, *(map(shielded, policies) if shield else policies)]
             results = {}
-            for policy in policies:
-                bar.update(task, description=f"{name}: {policy.name}, {episodes} episodes", refresh=True)
+            for policy in policies:  # the same number at every size
+                show(f"{name}: {policy.name}, {episodes} episodes", len(targets) * len(policies))
                 results[policy.name] = rollout(policy, key, params, episodes).stats.summary()
-                bar.advance(task)
             low, high = results["random"]["episode_reward"], results["oracle"]["episode_reward"]
             for policy, summary in results.items():
                 score = normalized_score(summary["episode_reward"], low, high)
@@ -100,6 +98,21 @@ def evaluate_run(
                     {**({"scenario": name} if named else {}), "policy": policy, **summary, "normalized_score": score}
                 )
     return rows
+
+
+@contextmanager
+def _progress(enabled: bool) -> Iterator[Callable[[str, int], None]]:
+    """Yields ``show(what, total)``, called before each rollout: on an interactive terminal
+    (and ``enabled``) a transient bar of what runs now out of ``total``; elsewhere nothing at
+    all, not even an empty line."""
+    console = Console()
+    if not (enabled and console.is_interactive):
+        yield lambda what, total: None
+        return
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    with Progress(*columns, console=console, transient=True) as bar:
+        task, done = bar.add_task("evaluating"), itertools.count()
+        yield lambda what, total: bar.update(task, description=what, total=total, completed=next(done), refresh=True)
 
 
 def _targets(run: Run, scenario: str | None) -> list[tuple[str, EnvParams]]:
