@@ -29,12 +29,13 @@ from any_size import MISSION  # the script beside this one
 
 import roverswarm.steering
 from roverswarm.env.missions import load_mission
+from roverswarm.errors import UserError
 from roverswarm.jaxcache import enable_compilation_cache
 from roverswarm.mission import load_policy
 from roverswarm.policies import ORACLE
 from roverswarm.runs import Run, write_csv
 from roverswarm.storage import atomic_write
-from roverswarm.stress import condition, stress_rows
+from roverswarm.stress import check_failures, condition, stress_rows
 
 HERE = Path(__file__).resolve().parent
 MISSIONS = (MISSION, MISSION.parent / "survey.yaml")
@@ -138,9 +139,10 @@ def main() -> None:
     ]
     missions = tuple(args.mission) if args.mission else MISSIONS
     for path in missions:  # before any rollout: a count the smallest mission cannot lose is refused
-        rovers = load_mission(path).params.num_rovers
-        if max(args.failures) >= rovers:
-            parser.error(f"--failures: {path} has {rovers} rovers, so at most {rovers - 1} may fail")
+        try:
+            check_failures(max(args.failures), load_mission(path).params.num_rovers)
+        except UserError as error:
+            parser.error(f"{path}: {error}")
     rows = measure(runs, missions, args.failures)
     write_csv(args.out.with_suffix(".csv"), rows)
     chosen = [f"--mission {path}" for path in args.mission or ()]
