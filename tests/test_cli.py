@@ -49,6 +49,15 @@ def test_a_table_keeps_every_number_and_word_at_any_width(columns, capsys, monke
     assert max(map(len, capsys.readouterr().out.splitlines())) <= columns or columns < 80
 
 
+def test_a_table_sizes_columns_by_terminal_cells(capsys, monkeypatch):
+    """A word of wide characters (two terminal cells each) stays whole in a narrow terminal,
+    and a column with no header and no text prints (empty) instead of failing."""
+    monkeypatch.setenv("COLUMNS", "30")
+    print_table("cells", [{"site": "火星探査基地", "": "", "reward": 1.5}], ("site",))
+    out = capsys.readouterr().out
+    assert "火星探査基地" in out and "1.500" in out, out
+
+
 def test_render_writes_an_animation_and_its_last_frame(tmp_path):
     out = tmp_path / "ep.gif"
     assert main(["render", "--scenario", "paper-2", "--policy", "oracle", "--out", str(out), "--seed", "1"]) == 0

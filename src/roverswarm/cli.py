@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Annotated, Callable, Literal, Union
 
 import tyro
+from rich.cells import cell_len
 from rich.console import Console
 from rich.measure import Measurement
 from rich.segment import Segment
@@ -111,9 +112,8 @@ def print_table(title: str, rows: list[dict[str, object]], left: tuple[str, ...]
     for column, values in cells.items():
         header, no_wrap = column.replace("_", " "), column == "policy"
         words = [*(values if no_wrap else (w for v in values for w in v.split())), *header.split()]
-        table.add_column(
-            header, justify="left" if column in left else "right", no_wrap=no_wrap, min_width=max(map(len, words))
-        )
+        width = max(map(cell_len, words), default=0)  # terminal cells: a wide character takes two
+        table.add_column(header, justify="left" if column in left else "right", no_wrap=no_wrap, min_width=width)
     for i in range(len(rows)):
         table.add_row(*(values[i] for values in cells.values()))
     console = Console()
