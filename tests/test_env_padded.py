@@ -308,6 +308,9 @@ def test_a_size_draw_power_draws_small_swarms_more_often(cap, expected):
         ("paper-2..100", "every N must be in 2..64"),
         ("paper-1..4", "every N must be in 2..64"),
         ("paper-5..3", "needs A < B"),
+        ("paper-2..99999999999999999999", r"2\.\.64, got 2\.\.99999999999999999999$"),  # refused before building it
+        ("paper-1", r"2\.\.64, got 1$"),
+        ("paper-2,2", "names each size once"),
         ("paper-x", "unknown scenario"),
         ("spread-3..5", "unknown scenario"),
     ],

@@ -19,6 +19,7 @@ from roverswarm.evaluate import evaluate_run
 from roverswarm.experiments.arms import usable_cpus
 from roverswarm.experiments.sweep import (
     SweepConfig,
+    by_size,
     evaluation,
     gapped,
     load_sweep,
@@ -187,6 +188,8 @@ def test_jobs_train_a_sweep_side_by_side_to_the_numbers_of_one_process(finished,
     [
         ({"settings": {"a": {"learning_rate": 1}}}, "setting 'a': unknown option 'learning_rate'"),
         ({"scenarios": ["mars-1"], "settings": {"a": {}}}, "unknown scenario 'mars-1'"),
+        ({"scenarios": ["paper-99"], "settings": {"a": {}}}, "scenario 'paper-99': every N must be in 2..64"),
+        ({"preset": "anysize", "scenarios": ["paper-3"], "settings": {"a": {}}}, "needs a range of swarm sizes"),
         ({"preset": "fast", "settings": {"a": {}}}, "preset must be one of default, reference, swarm"),
         ({"settings": {"a": {"share_parameters": True, "ensemble": 2}}}, "--share-parameters does not compose"),
         ({"settings": {}}, "settings must map names to options"),
@@ -225,6 +228,40 @@ def test_a_name_given_twice_is_refused_before_anything_trains(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "line 4: 'a' is given twice" in err and err.count("\n") == 1
     assert not (tmp_path / "out").exists()
+
+
+def test_numbers_with_an_exponent_are_numbers(tmp_path):
+    """YAML 1.1 reads 3e-4 (no dot) and 1.0e5 (no sign) as strings; a sweep file reads them as
+    JSON and YAML 1.2 do."""
+    path = tmp_path / "lr.yaml"
+    path.write_text("scenarios: [paper-2]\nsettings:\n  a: {actor_lr: 3e-4, critic_lr: 1.0e-3, grad_clip: 5E+1}\n")
+    (run,) = load_sweep(path, tmp_path / "out")
+    assert (run.config.learner.actor_lr, run.config.learner.critic_lr, run.config.learner.grad_clip) == (3e-4, 1e-3, 50)
+
+
+def test_a_sweep_over_a_range_of_sizes_gives_a_row_per_size(tmp_path):
+    """The anysize preset trains one policy for paper-2..3; the sweep evaluates it at 2 and 3
+    rovers, one row per size (its setting named with the range), each row that size's
+    evaluation; a figure orders its scenarios by swarm size."""
+    spec = {
+        "preset": "anysize",
+        "scenarios": ["paper-2..3"],
+        "seeds": 2,
+        "episodes": 200,
+        "settings": {"tiny": {**TINY_PPO, "size_curriculum": 0, "anneal_episodes": 200, "entity_nearest": 2}},
+    }
+    (tmp_path / "any.yaml").write_text(yaml.safe_dump(spec))
+    config = SweepConfig(tmp_path / "any.yaml", tmp_path / "out", eval_episodes=20)
+    sweep(config, live=False)
+    rows = read_table(config.out / "sweep.csv")
+    assert [(r["scenario"], r["setting"]) for r in rows] == [(f"paper-{n}", "tiny (paper-2..3)") for n in (2, 3)]
+    (run,) = load_sweep(config.file, config.out)
+    evaluated = evaluate_run(run.folder, episodes=20)
+    for row, size in zip(rows, ("paper-2", "paper-3")):
+        mine = [r for r in evaluated if r["scenario"] == size]
+        assert row["scores"] == " / ".join(f"{r['normalized_score']:.2f}" for r in mine[2:])
+        assert row["random_reward"] == pytest.approx(mine[0]["episode_reward"], abs=1e-3)
+    assert by_size(["paper-10", "spread-3", "paper-2", "paper-3"]) == ["paper-2", "spread-3", "paper-3", "paper-10"]
 
 
 def test_a_setting_name_cannot_write_outside_out(tmp_path, capsys):

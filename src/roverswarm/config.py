@@ -336,7 +336,7 @@ def config_from_json(text: str) -> TrainConfig:
                 replay[f.name] = raw.pop(f.name)
         ppo = PPOConfig(**raw.pop("ppo", {}))
         config = TrainConfig(**raw, learner=AlgoConfig(**learner), buffer=ReplayConfig(**replay), ppo=ppo)
-    except (ValueError, KeyError, TypeError, AttributeError) as error:
+    except (ValueError, KeyError, TypeError, AttributeError, RecursionError) as error:
         raise UserError(f"config.json is not a roverswarm training config ({type(error).__name__}: {error})") from error
     check_types(config, "config.json")
     return config

@@ -23,17 +23,16 @@ overlaps a trap or another rover. The environment itself is unchanged: a mission
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from roverswarm.env.mars import EnvParams, count_text
 from roverswarm.env.validation import validate_params
 from roverswarm.errors import UserError, require
+from roverswarm.parsing import load_text
 
 MAX_BYTES = 1_000_000
 """Largest mission file read (a mission of hundreds of POIs is a few tens of kB)."""
@@ -269,22 +268,13 @@ def read_mission_text(path: str | Path) -> str:
 
 def parse_mission_text(text: str, path: str | Path) -> Mission:
     """The mission in ``text``, the content of mission file ``path`` (its suffix says JSON or
-    YAML, its stem is the default name). YAML aliases are refused before anything is built,
-    so a small file cannot expand into a huge document."""
+    YAML, its stem is the default name), read by :func:`~roverswarm.parsing.load_text`: a key
+    given twice is refused, and YAML aliases before anything is built, so a small file cannot
+    expand into a huge document."""
     path = Path(path)
     kind = "JSON" if path.suffix.lower() == ".json" else "YAML"
     require(len(text) <= MAX_BYTES, f"mission file '{path}' has {len(text)} characters; at most {MAX_BYTES} are read")
-    try:
-        if kind == "JSON":
-            data = json.loads(text)
-        else:
-            for event in yaml.parse(text, Loader=yaml.SafeLoader):
-                if isinstance(event, yaml.AliasEvent):
-                    raise UserError(f"mission file '{path}': YAML aliases (*{event.anchor}) are not allowed")
-            data = yaml.safe_load(text)
-    except (json.JSONDecodeError, yaml.YAMLError) as error:
-        flat = " ".join(str(error).split())  # one line, whatever the parser's layout
-        raise UserError(f"mission file '{path}' is not valid {kind}: {flat}") from None
+    data = load_text(text, kind, f"mission file '{path}'", aliases=False)
     return parse_mission(data, name=path.stem)
 
 

@@ -85,21 +85,23 @@ def scenario_sizes(name: str) -> tuple[int, ...]:
     none of these or a size is outside 2..MAX_ROVERS."""
     if name in SCENARIOS:
         return (SCENARIOS[name].params.num_rovers,)
-    if match := _RANGE.fullmatch(name):
-        low, high = int(match[1]), int(match[2])
-        require(low < high, f"scenario '{name}': a range paper-A..B needs A < B")
-        sizes = tuple(range(low, high + 1))
+    ranged = _RANGE.fullmatch(name)
+    if match := ranged:
+        given = [int(match[1]), int(match[2])]
+        require(given[0] < given[1], f"scenario '{name}': a range paper-A..B needs A < B")
     elif match := _LIST.fullmatch(name):
-        sizes = tuple(sorted({int(n) for n in match[1].split(",")}))
+        given = [int(n) for n in match[1].split(",")]
+        require(len(set(given)) == len(given), f"scenario '{name}': a list paper-A,B,C names each size once")
     elif match := _SINGLE.fullmatch(name):
-        sizes = (int(match[1]),)
+        given = [int(match[1])]
     else:
         raise UserError(f"unknown scenario '{name}'; choose {_NAMES}")
+    low, high = min(given), max(given)  # checked before a range is built: paper-2..10**20 builds nothing
     require(
-        2 <= sizes[0] and sizes[-1] <= MAX_ROVERS,
-        f"scenario '{name}': every N must be in 2..{MAX_ROVERS}, got {sizes[0]}..{sizes[-1]}",
+        2 <= low and high <= MAX_ROVERS,
+        f"scenario '{name}': every N must be in 2..{MAX_ROVERS}, got {low}" + f"..{high}" * (high > low),
     )
-    return sizes
+    return tuple(range(low, high + 1)) if ranged else tuple(sorted(given))
 
 
 def range_sizes(name: str) -> tuple[int, ...] | None:

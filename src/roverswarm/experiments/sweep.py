@@ -24,11 +24,15 @@ their minimum and mean, POIs observed, collisions and trap contacts beside the o
 random and oracle rewards the score is measured against, and minutes of training.
 ``OUT/sweep.png`` plots every seed's score per scenario and setting (with ``paper-2`` ...
 ``paper-8`` as the scenarios: the score against the number of rovers).
+
+A scenario may be any ``paper-N``, or a range or list of sizes (``paper-2..10``) for the
+presets that train one policy for every size (``anysize``, ``anysize-ddpg``): such a run is
+evaluated at each size of its range and gives a row per size, its setting named with the
+range (``anysize (paper-2..10)``).
 """
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import dataclasses
 from dataclasses import dataclass
@@ -36,18 +40,18 @@ from pathlib import Path
 
 import numpy as np
 import tyro
-import yaml
 from rich.console import Console
 from rich.live import Live
 
 from roverswarm.config import validate, with_options
-from roverswarm.env.scenarios import SCENARIOS
+from roverswarm.env.scenarios import scenario_sizes
 from roverswarm.errors import UserError, require
 from roverswarm.experiments.arms import Backend, GridRun, check_backend, episodes_done, status
 from roverswarm.experiments.live import Summary
 from roverswarm.experiments.pool import default_jobs, train_runs
 from roverswarm.experiments.remote import run_ray
 from roverswarm.limits import check_memory, open_limited, read_limited, safe_name, training_parts
+from roverswarm.parsing import load_text
 from roverswarm.presets import PRESETS
 from roverswarm.runs import METRICS, folder_lock, markdown_table, read_metrics, training_seconds, write_csv
 from roverswarm.storage import atomic_write
@@ -64,23 +68,9 @@ class SweepConfig(Backend):
     file: tyro.conf.Positional[Path]
     """Sweep file (YAML): preset, scenarios, seeds, episodes and named settings (docs/training.md#sweeps)."""
     out: Path = Path("results/sweep")
-    """Output folder: runs/, sweep.csv and sweep.md."""
+    """Output folder: runs/, sweep.csv, sweep.md and sweep.png."""
     eval_episodes: int = 1000
     """Deterministic evaluation episodes per policy (the same layouts for every policy)."""
-
-
-class _UniqueKeyLoader(yaml.SafeLoader):
-    """YAML's safe loader refusing a key given twice in one mapping (PyYAML keeps the last one)."""
-
-    def construct_mapping(self, node, deep=False):
-        seen: set = set()
-        for key_node, _ in node.value:
-            key = self.construct_object(key_node, deep=deep)
-            with contextlib.suppress(TypeError):  # unhashable keys are left to the checks below
-                if key in seen:
-                    raise UserError(f"line {key_node.start_mark.line + 1}: '{key}' is given twice")
-                seen.add(key)
-        return super().construct_mapping(node, deep=deep)
 
 
 ROW_OPTIONS = ("scenario", "mission", "mission_text", "seeds")
@@ -92,13 +82,7 @@ def load_sweep(path: Path, out: Path) -> list[GridRun]:
     each run's memory), with folders under ``out``: ``out/runs/<scenario>/<setting>``, the
     setting's name checked to be one path component (:func:`~roverswarm.limits.safe_name`)."""
     require(Path(path).is_file(), f"sweep file '{path}' does not exist")
-    try:
-        spec = yaml.load(read_limited(path, "sweep file"), Loader=_UniqueKeyLoader)  # noqa: S506 (a safe loader)
-    except yaml.YAMLError as error:
-        flat = " ".join(str(error).split())
-        raise UserError(f"sweep file '{path}' is not valid YAML: {flat}") from error
-    except UserError as error:
-        raise UserError(f"sweep file '{path}': {error}") from None
+    spec = load_text(read_limited(path, "sweep file"), "YAML", f"sweep file '{path}'")
     require(
         isinstance(spec, dict),
         f"sweep file '{path}' must hold a mapping (preset, scenarios, seeds, episodes, settings)",
@@ -114,10 +98,11 @@ def load_sweep(path: Path, out: Path) -> list[GridRun]:
     scenarios = spec.get("scenarios", ["paper-3"])
     require(isinstance(scenarios, list) and scenarios, f"sweep file '{path}': scenarios must be a non-empty list")
     for name in scenarios:
-        require(
-            isinstance(name, str) and name in SCENARIOS,
-            f"sweep file '{path}': unknown scenario {name!r}; known: {', '.join(SCENARIOS)}",
-        )
+        require(isinstance(name, str), f"sweep file '{path}': scenarios must be names, got {name!r}")
+        try:
+            scenario_sizes(name)
+        except UserError as error:
+            raise UserError(f"sweep file '{path}': {error}") from None
     require(
         len(set(scenarios)) == len(scenarios),
         f"sweep file '{path}': scenarios must each be given once, got {', '.join(scenarios)}",
@@ -203,6 +188,20 @@ def table_row(run: GridRun, rows: list[dict[str, object]]) -> dict[str, object]:
     }
 
 
+def table_rows(run: GridRun, rows: list[dict[str, object]]) -> list[dict[str, object]]:
+    """The sweep table's rows of ``run`` (:func:`table_row`): one, or for a run trained across
+    sizes (``paper-2..10``) one per size it is evaluated at, each with that size as its
+    scenario and the range in its setting's name (``anysize (paper-2..10)``), so that its line
+    in the figure is the score against N and stays apart from the specialists'."""
+    if "scenario" not in rows[0]:
+        return [table_row(run, rows)]
+    sizes: dict[str, list[dict[str, object]]] = {}
+    for row in rows:
+        sizes.setdefault(str(row["scenario"]), []).append(row)
+    setting = f"{run.algorithm} ({run.scenario})"
+    return [{**table_row(run, mine), "scenario": name, "setting": setting} for name, mine in sizes.items()]
+
+
 def gapped(x: list[int], y: list[float]) -> tuple[list[float], list[float]]:
     """Points ``(x, y)`` in order of ``x`` with a NaN between two that are not neighbours
     (``x`` differs by more than 1), so a line drawn through them stops at a scenario the
@@ -227,13 +226,23 @@ def setting_colours(count: int) -> list[tuple[float, float, float]]:
     return [palette[i % len(palette)] for i in range(count)]
 
 
-def figure(rows: list[dict[str, object]], path: Path) -> None:
+def by_size(scenarios: list[str]) -> list[str]:
+    """``scenarios`` in order of their swarm size (a stable sort: names of one size keep their
+    order), or as given if one of them is not a scenario name."""
+    try:
+        return sorted(scenarios, key=lambda name: scenario_sizes(name)[0])
+    except UserError:
+        return scenarios
+
+
+def figure(rows: list[dict[str, object]], path: Path, episodes: int = 1000) -> None:
     """Left: every seed's score (dots) and their mean (line; dotted across scenarios a setting
-    skipped) per scenario, one colour per setting, beside random (0) and the oracle (1).
-    Right: minutes of training per run."""
+    skipped) per scenario, by swarm size, one colour per setting, beside random (0) and the
+    oracle (1), evaluated on ``episodes`` episodes per policy. Right: minutes of training per
+    run (a run across sizes: at each size it was evaluated at)."""
     from matplotlib.figure import Figure
 
-    scenarios = list(dict.fromkeys(str(r["scenario"]) for r in rows))
+    scenarios = by_size(list(dict.fromkeys(str(r["scenario"]) for r in rows)))
     fig = Figure(figsize=(1.2 * len(scenarios) + 6, 4.5), dpi=100)
     ax, clock = fig.subplots(1, 2, gridspec_kw={"width_ratios": [3, 2]})
     settings = list(dict.fromkeys(str(r["setting"]) for r in rows))
@@ -256,10 +265,10 @@ def figure(rows: list[dict[str, object]], path: Path) -> None:
         axes.set_xticks(range(len(scenarios)), scenarios, rotation=30 if len(scenarios) > 4 else 0)
         axes.set_xlim(-0.5, len(scenarios) - 0.5)
     ax.set_ylabel("normalised score (every seed; line: mean)")
-    ax.set_title("deterministic evaluation, 1000 episodes per policy", fontsize=10)
+    ax.set_title(f"deterministic evaluation, {episodes} episodes per policy", fontsize=10)
     ax.legend(fontsize=8)
     clock.set_ylabel("minutes of training per run (all seeds)")
-    clock.set_title("wall time of each run, where it was trained", fontsize=10)
+    clock.set_title("training wall time per run", fontsize=10)
     clock.set_ylim(bottom=0)
     fig.tight_layout()
     fig.savefig(path)
@@ -299,16 +308,18 @@ def sweep(config: SweepConfig, live: bool = True) -> Path:
     todo = [run for run in runs if run.name not in done]
     summary = Summary(runs, done)
     table: list[dict[str, object]] = []
+    tabulated = []  # the runs in the table, in the file's order
     config.out.mkdir(parents=True, exist_ok=True)
 
     def tabulate(finished: set[str]) -> None:  # the runs after the table's last, while finished
-        for run in runs[len(table) :]:
+        for run in runs[len(tabulated) :]:
             if run.name not in finished:
                 return
-            table.append(table_row(run, evaluation(run, config.eval_episodes)))
+            table.extend(table_rows(run, evaluation(run, config.eval_episodes)))
+            tabulated.append(run)
             write_csv(config.out / "sweep.csv", table)
             atomic_write(config.out / "sweep.md", lambda f: f.write(markdown(table)))
-            figure(table, config.out / "sweep.png")
+            figure(table, config.out / "sweep.png", config.eval_episodes)
 
     def execute() -> None:
         finished = set(done)
