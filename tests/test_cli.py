@@ -107,3 +107,59 @@ def test_bad_input_is_one_line_and_exit_code_2(argv, message, capsys, tmp_path, 
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_an_output_that_cannot_be_written_is_refused_before_the_episode(tmp_path, capsys, monkeypatch):
+    """An --out in a folder that takes no file, under a file, or naming a folder: one line,
+    exit code 2, before an episode is run, and no writer left half closed (which printed a
+    traceback when it was collected)."""
+    import gc
+    import sys
+
+    import roverswarm.animation
+
+    unraisable = []
+    monkeypatch.setattr(sys, "unraisablehook", unraisable.append)
+    monkeypatch.setattr(roverswarm.animation, "rollout", lambda *a, **k: pytest.fail("the episode was run"))
+    (tmp_path / "notes.txt").write_text("")
+    (tmp_path / "folder.gif").mkdir()
+    cases = {
+        str(tmp_path / "notes.txt" / "ep.gif"): "is a file, not a folder",
+        str(tmp_path / "folder.gif"): "is a folder; give a file ending in .gif or .mp4",
+    }
+    if Path("/proc/self").exists():  # a folder no file can be made in, even by root
+        cases["/proc/ep.gif"] = "folder '/proc' cannot be written"
+    for out, message in cases.items():
+        assert main(["render", "--scenario", "paper-2", "--out", out]) == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1, err
+    gc.collect()
+    assert unraisable == []
+
+
+def test_an_mp4_is_written_without_the_fork_warning(tmp_path, capsys):
+    """ffmpeg is started by fork and exec, which JAX's fork warning does not concern: the
+    command prints no warning."""
+    import warnings
+
+    out = tmp_path / "ep.mp4"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert main(["render", "--scenario", "paper-2", "--policy", "oracle", "--out", str(out)]) == 0
+    assert not [w for w in caught if "fork" in str(w.message)], [str(w.message) for w in caught]
+    assert len(imageio.mimread(out)) == get_scenario("paper-2").max_steps + 1 and out.with_suffix(".png").exists()
+
+
+def test_out_and_resume_may_spell_one_folder_two_ways(tmp_path, capsys, monkeypatch):
+    """`train --resume r1 --out /abs/r1` names one folder: it goes on to the resume's own
+    checks (here: no checkpoint to continue); two folders are refused."""
+    from roverswarm.config import TrainConfig, config_to_json
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "r1").mkdir()
+    (tmp_path / "r1" / "config.json").write_text(config_to_json(TrainConfig()))
+    for resume, out in (("r1", str(tmp_path / "r1")), (str(tmp_path / "r1"), "./r1/"), ("r1", "r2")):
+        assert main(["train", "--resume", resume, "--out", out]) == 2
+        err = capsys.readouterr().err
+        expected = "name different folders" if out == "r2" else "--resume: no run to continue in"
+        assert expected in err and err.count("\n") == 1, err

@@ -22,6 +22,7 @@ from roverswarm.config import TrainConfig, config_to_json, validate, with_option
 from roverswarm.env import get_scenario
 from roverswarm.env.entities import EntityView, nearest_entities, observe_entities
 from roverswarm.env.mars import NEVER, EnvState, failed_rovers, observe, reset, step_env
+from roverswarm.errors import UserError
 from roverswarm.export import SHIELD, SNIPPET, env_constants, export_run, random_states, trained_sizes
 from roverswarm.learners import learner_family
 from roverswarm.learners.base import Runner
@@ -391,3 +392,19 @@ def test_refusals_are_one_line_and_exit_code_2(exported, tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and re.search(message, err[0]), err
         assert not (tmp_path / "out").exists()
+
+
+def test_a_run_its_budget_ended_is_finished_and_exports(tmp_path):
+    """A run whose --budget-minutes ended it before its episodes (which `train --resume` will
+    not continue) exports, as a sweep counts it finished; policy.json gives the episodes it
+    trained. One stopped before its budget is spent is still refused with `train --resume`."""
+    from roverswarm.runs import METRICS, write_csv
+
+    config = dataclasses.replace(KINDS["ippo"], episodes=200, budget_minutes=0.001)
+    for name, seconds in (("budget", 1.0), ("interrupted", 0.01)):  # 0.001 minutes: 0.06 seconds
+        run = make_run(config, tmp_path / name, episodes_done=100)
+        write_csv(run / METRICS, [{"seed": s, "episodes": 100, "wall_seconds": seconds} for s in range(config.seeds)])
+    result = export_run(tmp_path / "budget", tmp_path / "out", seed=SEED)
+    assert result.difference < 1e-5 and result.meta["trained_for"]["episodes"] == 100
+    with pytest.raises(UserError, match=r"holds 100 of 200 episodes; finish it with `roverswarm train --resume"):
+        export_run(tmp_path / "interrupted", tmp_path / "out2")

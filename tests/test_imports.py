@@ -68,3 +68,19 @@ def test_the_package_has_no_import_cycle():
 def test_the_cycle_finder_finds_a_cycle():
     assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
     assert find_cycle({"a": {"b"}, "b": set()}) is None
+
+
+def test_the_public_names_are_listed_importable_and_documented():
+    """Every lazily loaded public name is in dir(roverswarm), help(roverswarm) and the module
+    docstring's list, and imports."""
+    import importlib
+    import pydoc
+
+    assert set(roverswarm.__all__) == set(roverswarm._EXPORTS)
+    assert set(roverswarm.__all__) <= set(dir(roverswarm)) and "__version__" in dir(roverswarm)
+    members = pydoc.render_doc(roverswarm, renderer=pydoc.plaintext).partition("\nCLASSES\n")[2]  # past the docstring
+    for name in roverswarm.__all__:
+        module = roverswarm._EXPORTS[name]
+        assert f"``{name}`` (``{module}``)" in roverswarm.__doc__
+        assert getattr(roverswarm, name) is getattr(importlib.import_module(module), name)
+        assert any(shown in members for shown in (f"class {name}(", f"    {name}(", f"    {name} =")), name

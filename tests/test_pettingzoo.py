@@ -57,6 +57,23 @@ def test_missing_or_misshapen_actions_are_refused():
         env.step({"rover_0": np.zeros(2)})
     with pytest.raises(UserError, match=r"shape \(2,\)"):
         env.step({"rover_0": np.zeros(3), "rover_1": np.zeros(3)})
+    with pytest.raises(UserError, match=r"shape \(2,\), got rover_1 \(3,\)"):
+        env.step({"rover_0": np.zeros(2), "rover_1": np.zeros(3)})
+
+
+def test_unknown_agents_and_non_finite_actions_are_refused():
+    """An action for a name that is not an agent of the episode, or one with NaN or infinity
+    (NaN spread to every observation), is refused and the episode is left as it was."""
+    env = RoverSwarmEnv("paper-2")
+    obs, _ = env.reset(seed=0)
+    zeros = {a: np.zeros(2, np.float32) for a in env.agents}
+    with pytest.raises(UserError, match="actions given for 'rover_9', which are not agents of this episode"):
+        env.step({**zeros, "rover_9": np.zeros(2)})
+    for bad in (np.nan, np.inf):
+        with pytest.raises(ValueError, match="the actions of rover_1 are not finite"):
+            env.step({**zeros, "rover_1": np.array([0.0, bad])})
+    obs, *_ = env.step(zeros)
+    assert all(np.isfinite(o).all() for o in obs.values())
 
 
 def test_rgb_array_render_shows_the_rovers():

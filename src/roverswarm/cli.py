@@ -72,7 +72,11 @@ def run_train(cmd: TrainCommand) -> None:
         result = train(cmd.config, out=cmd.out)
     else:
         require((cmd.resume / CONFIG).exists(), f"--resume: '{cmd.resume}' holds no config.json")
-        require(cmd.out in (None, cmd.resume), "--out and --resume name different folders")
+        require(
+            cmd.out is None or cmd.out.resolve() == cmd.resume.resolve(),  # one folder however spelt
+            f"--out '{cmd.out}' and --resume '{cmd.resume}' name different folders; a run is resumed in its own "
+            "folder: give --resume alone",
+        )
         saved = read_config(cmd.resume / CONFIG)
         algo = PRESETS[cmd.preset].learner.algo
         require(

@@ -33,7 +33,7 @@ from roverswarm.env.mars import NEVER, EnvParams, EnvState, failed_rovers, obser
 from roverswarm.env.scenarios import get_scenario, range_sizes
 from roverswarm.errors import UserError, require
 from roverswarm.learners import learner_family, offpolicy
-from roverswarm.runs import CHECKPOINT, Run, folder_lock
+from roverswarm.runs import CHECKPOINT, Run, budget_spent, checkpointed_rows, folder_lock, training_seconds
 from roverswarm.steering import FAILED_MARGIN, KEEP_OUT_MARGIN, SHIELD_STEPS, shield_actions
 from roverswarm.storage import atomic_write, trained_episodes
 
@@ -169,9 +169,10 @@ SHIELD = {"keep_out_margin": KEEP_OUT_MARGIN, "failed_margin": FAILED_MARGIN, "s
 """``policy.json``'s ``shield`` for an export with the safety layer: what the NumPy layer reads."""
 
 
-def describe(run: Run, seed: int, model, shield: bool) -> dict:
-    """``policy.json``: what the model's inputs and output mean, what it was trained for, and
-    the safety layer's constants if the export holds it (``shield``, else None)."""
+def describe(run: Run, seed: int, model, shield: bool, episodes: int | None = None) -> dict:
+    """``policy.json``: what the model's inputs and output mean, what it was trained for (for
+    ``episodes`` per seed, default its config's: fewer where its ``--budget-minutes`` ended it),
+    and the safety layer's constants if the export holds it (``shield``, else None)."""
     config, params = run.config, run.params
     view = view_of(config)
     if view["kind"] == "flat":
@@ -197,7 +198,7 @@ def describe(run: Run, seed: int, model, shield: bool) -> dict:
         "trained_for": {
             "scenario": config.scenario if config.mission is None else None,
             "mission": config.mission,
-            "episodes": config.episodes,
+            "episodes": config.episodes if episodes is None else episodes,
             "sizes": [
                 {"rovers": p.num_rovers, "pois": p.num_pois, "traps": p.num_traps, "map_size": _numbers(p.map_size)}
                 for p in trained_sizes(run)
@@ -327,14 +328,16 @@ def readme(meta: dict) -> str:
 def export_run(run_folder: str | Path, out: str | Path, seed: int = 0, shield: bool = False) -> Export:
     """Export seed ``seed`` of the finished run in ``run_folder`` into folder ``out`` (see the
     module docstring), with the safety layer if ``shield`` or if the run was trained behind it;
-    :class:`UserError` for a folder that holds no finished run, a seed out of range, or a
-    policy ensemble."""
+    a run is finished when its checkpoint holds all its episodes or its ``--budget-minutes``
+    ended it. :class:`UserError` for a folder that holds no finished run, a seed out of range,
+    or a policy ensemble."""
     _onnx()
     run, out = Run(run_folder), Path(out)
     config = run.config
     done = trained_episodes(run.folder / CHECKPOINT)
+    # finished: all its episodes, or its --budget-minutes spent (as a sweep counts it; `train --resume` then refuses)
     require(
-        done >= config.episodes,
+        done >= config.episodes or budget_spent(config, training_seconds(checkpointed_rows(run.folder)[1])),
         f"'{run.folder}' is not a finished run: its checkpoint holds {done} of {config.episodes} episodes; "
         f"finish it with `roverswarm train --resume {run.folder}`",
     )
@@ -350,7 +353,7 @@ def export_run(run_folder: str | Path, out: str | Path, seed: int = 0, shield: b
     actor, norm = weights_of(run, seed)
     doc = f"roverswarm {config.learner.algo} actor, seed {seed} of {run.folder}"
     model = policy_model(config, run.params, actor, norm, doc)
-    meta = describe(run, seed, model, shield or config.learner.shield)
+    meta = describe(run, seed, model, shield or config.learner.shield, done)
     model.metadata_props.add(key="roverswarm", value=json.dumps(meta))
     model_bytes = model.SerializeToString()
     source = Path(export_numpy.__file__).read_text()

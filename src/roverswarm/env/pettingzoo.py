@@ -87,9 +87,7 @@ class RoverSwarmEnv(ParallelEnv):
     def step(self, actions: dict[str, np.ndarray]):
         if not self.agents:
             raise UserError("step() called on a finished episode; call reset() first")
-        stacked = stack_agents(actions, self.agents)
-        if stacked.shape != (self.params.num_rovers, ACTION_SIZE):
-            raise UserError(f"each action must have shape ({ACTION_SIZE},), got {stacked.shape[1:]}")
+        stacked = self._action_array(actions)
         obs, self._state, rewards, terminated, truncated, info = _step(self._state, jnp.asarray(stacked), self.params)
         self._trail.append(np.asarray(self._state.rover_pos))
         agents = self.agents
@@ -109,6 +107,29 @@ class RoverSwarmEnv(ParallelEnv):
         if bool(terminated) or bool(truncated):
             self.agents = []
         return split_agents(np.asarray(obs), agents), rewards, terms, truncs, infos
+
+    def _action_array(self, actions: dict[str, Any]) -> np.ndarray:
+        """``actions`` as an array [N, 2] in agent order; :class:`UserError` for an action given
+        to a name that is not a rover of the episode, a rover without one, and an action of
+        another shape or not finite (NaN would spread to every observation)."""
+        unknown = [repr(a) for a in actions if a not in self.agents]
+        if unknown:
+            raise UserError(
+                f"actions given for {', '.join(unknown)}, which are not agents of this episode; the agents are "
+                f"{', '.join(self.agents)}"
+            )
+        shapes = {a: np.shape(actions[a]) for a in self.agents if a in actions}
+        wrong = [f"{a} {shape}" for a, shape in shapes.items() if shape != (ACTION_SIZE,)]
+        if wrong:
+            raise UserError(f"each action must have shape ({ACTION_SIZE},), got {', '.join(wrong)}")
+        stacked = stack_agents(actions, self.agents)
+        bad = [a for a, action in zip(self.agents, stacked) if not np.isfinite(action).all()]
+        if bad:
+            raise UserError(
+                f"the actions of {', '.join(bad)} are not finite (NaN or infinity); each action is a force in "
+                "[-1, 1]^2, larger values are clipped"
+            )
+        return stacked
 
     def state(self) -> np.ndarray:
         """Global state: every rover's observation, concatenated."""

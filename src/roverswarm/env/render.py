@@ -7,16 +7,18 @@ drawn by :mod:`roverswarm.animation` (above the environment: it runs policies).
 
 from __future__ import annotations
 
+import tempfile
+import warnings
 from pathlib import Path
 
-import imageio.v2 as imageio
+import imageio.v3 as imageio
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
 from roverswarm.env.mars import EnvParams, observe_radii, trap_radii
-from roverswarm.errors import UserError
+from roverswarm.errors import UserError, require
 
 ANIMATION_SUFFIXES = (".gif", ".mp4")
 _ROVER_COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#d62728", "#e377c2", "#17becf", "#bcbd22")
@@ -74,23 +76,54 @@ class FrameRenderer:
 
 
 def check_animation_path(path: Path) -> None:
-    """Raise :class:`UserError` unless ``path`` ends in .gif or .mp4."""
+    """Raise :class:`UserError` unless ``path`` ends in .gif or .mp4 and can be written: not a
+    folder, and its folder (or the nearest one of its folders that exists: the others are made
+    when writing) one that takes a new file. Checked before an episode is drawn."""
+    path = Path(path)
     if path.suffix.lower() not in ANIMATION_SUFFIXES:
         raise UserError(f"--out must end in {' or '.join(ANIMATION_SUFFIXES)}, got '{path.name}'")
+    require(not path.is_dir(), f"--out '{path}' is a folder; give a file ending in {' or '.join(ANIMATION_SUFFIXES)}")
+    folder = next(p for p in path.absolute().parents if p.exists())
+    require(folder.is_dir(), f"--out '{path}': '{folder}' is a file, not a folder; choose another --out")
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=f".{path.name}."):
+            pass
+    except OSError as error:
+        raise UserError(
+            f"--out '{path}': folder '{folder}' cannot be written ({error.strerror or error}); choose another --out"
+        ) from error
+
+
+def encode_animation(frames: list[np.ndarray], suffix: str, fps: int = 8) -> bytes:
+    """The bytes of ``frames`` as a ``suffix`` (.gif or .mp4) file, encoded in memory: imageio's
+    writer never opens the output, so a path that cannot be written cannot leave it half closed
+    (a writer whose file failed retries it when collected, and prints a traceback)."""
+    if suffix == ".gif":
+        return imageio.imwrite("<bytes>", frames, extension=suffix, duration=1000 / fps, loop=0)
+    with warnings.catch_warnings():
+        # imageio-ffmpeg starts ffmpeg with subprocess: a fork immediately followed by exec, the
+        # child running no Python and taking no lock of JAX's threads, so the deadlock JAX's
+        # fork warning foresees cannot happen
+        warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+        return imageio.imwrite("<bytes>", frames, extension=suffix, fps=fps, macro_block_size=1)
 
 
 def save_animation(frames: list[np.ndarray], path: Path, fps: int = 8) -> Path:
-    """Write ``frames`` to ``path`` (.gif or .mp4) and the last frame to ``path`` with .png.
+    """Write ``frames`` to ``path`` (.gif or .mp4) and the last frame to ``path`` with .png,
+    each atomically (encoded in memory, then written beside it and renamed).
 
     Returns the PNG's path.
     """
+    from roverswarm.storage import atomic_write  # the trainer's modules, loaded only when writing
+
     path = Path(path)
     check_animation_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if path.suffix.lower() == ".gif":
-        imageio.mimsave(path, frames, duration=1000 / fps, loop=0)
-    else:
-        imageio.mimsave(path, frames, fps=fps, macro_block_size=1)
     png = path.with_suffix(".png")
-    imageio.imwrite(png, frames[-1])
+    files = {
+        path: encode_animation(frames, path.suffix.lower(), fps),
+        png: imageio.imwrite("<bytes>", frames[-1], extension=".png"),
+    }
+    for target, content in files.items():
+        atomic_write(target, lambda f, c=content: f.write(c), binary=True)
     return png
