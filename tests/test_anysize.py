@@ -230,6 +230,36 @@ def test_a_flat_policy_refuses_another_size(tiny_ppo_config, tmp_path, capsys):
     assert len(err) == 1 and "was trained for 2 rovers" in err[0]
 
 
+def test_a_size_the_run_cannot_drive_is_blamed_on_the_option_that_asked_for_it(tiny_config, tmp_path, capsys):
+    """`evaluate --scenario` names --scenario and what is allowed (it said --policy, which evaluate
+    has not); render and the mission commands, whose policy comes from --policy, keep naming it."""
+    from roverswarm.cli import main
+    from roverswarm.config import config_to_json
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(config_to_json(tiny_config))  # paper-2, the flat view
+    (run / "checkpoint.npz").write_bytes(b"")  # never read: the check comes first
+    trained = f"'{run}' was trained for 2 rovers, 2 POIs, 2 traps (paper-2); "
+    mission, out = str(Path(__file__).parent.parent / "examples" / "mission.yaml"), str(tmp_path / "out.gif")
+    for argv, message in (
+        (
+            ["evaluate", str(run), "--scenario", "paper-3"],
+            f"--scenario: {trained}scenario 'paper-3' has 3 rovers, 3 POIs, 3 traps. Its policies drive those numbers "
+            "only: omit --scenario (its own paper-2) or give a scenario of the same numbers; for any size, train with "
+            "--network nearest (or entity with --algo mappo or ippo).",
+        ),
+        (
+            ["render", "--policy", str(run), "--scenario", "paper-3", "--out", out],
+            f"--policy: {trained}scenario 'paper-3' has 3",
+        ),
+        (["mission", "run", mission, "--policy", str(run), "--out", out], f"--policy: {trained}mission 'jezero-delta'"),
+    ):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"roverswarm: error: {message}") and err.count("\n") == 1, err
+
+
 @pytest.mark.parametrize(
     "options, pattern",
     [

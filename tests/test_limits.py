@@ -122,7 +122,9 @@ def test_an_edited_config_json_or_another_presets_learner_is_not_resumed(interru
     raw["learner"]["actor_lr"] = 0.5
     raw["buffer"]["buffer_size"] = 1000
     (out / "config.json").write_text(json.dumps(raw))
-    refused(["train", "--resume", str(out)], "was edited since its checkpoint was written (actor_lr, buffer_size)", capsys)
+    refused(
+        ["train", "--resume", str(out)], "was edited since its checkpoint was written (actor_lr, buffer_size)", capsys
+    )
 
 
 def test_the_learning_curve_is_not_written_through_a_symlink(tmp_path):
@@ -138,7 +140,10 @@ def test_the_learning_curve_is_not_written_through_a_symlink(tmp_path):
 @pytest.mark.parametrize(
     "argv, part",
     [
-        (["train", "--hidden", "65536", "65536"], "for the networks (--hidden (65536, 65536), --ensemble 1, --seeds 1)"),
+        (
+            ["train", "--hidden", "65536", "65536"],
+            "for the networks (--hidden (65536, 65536), --ensemble 1, --seeds 1)",
+        ),
         (["train", "--ensemble", "100000"], "--ensemble 100000, --seeds 1)"),
         (["train", "--preset", "mappo", "--seeds", "1000000"], "--seeds 1000000)"),
     ],
@@ -157,7 +162,9 @@ def test_evaluate_refuses_a_run_or_a_batch_too_large_before_reading_its_checkpoi
     (run / "config.json").write_text(config_to_json(huge))
     refused(["evaluate", str(run)], f"the run in '{run}' needs about", capsys)
     (run / "config.json").write_text(config_to_json(tiny_config))
-    refused(["evaluate", str(run), "--episodes", str(2**30)], "for the evaluation batch (--episodes 1073741824)", capsys)
+    refused(
+        ["evaluate", str(run), "--episodes", str(2**30)], "for the evaluation batch (--episodes 1073741824)", capsys
+    )
 
 
 def test_files_past_their_limit_are_refused_without_being_read(tiny_config, tmp_path, monkeypatch, capsys):
@@ -197,5 +204,73 @@ def test_a_file_that_grows_while_it_is_read_is_cut_at_the_limit(tmp_path, monkey
 
 
 def test_a_grid_checks_every_runs_memory_before_the_first_trains(tmp_path, capsys):
-    refused(["reproduce", "--quick", "--ensemble", "100000", "--out", str(tmp_path / "grid")], "--ensemble 100000", capsys)
+    refused(
+        ["reproduce", "--quick", "--ensemble", "100000", "--out", str(tmp_path / "grid")], "--ensemble 100000", capsys
+    )
     assert not (tmp_path / "grid" / "runs").exists()
+
+
+@pytest.fixture
+def memory_of(monkeypatch):
+    """``set(gib)`` makes the process's memory limit ``gib`` GiB (refusals then hold on any machine);
+    no rollout may run: the estimates must come first."""
+    import roverswarm.evaluate
+    import roverswarm.limits as limits
+    import roverswarm.mission
+    import roverswarm.stress
+
+    def rolled(*args, **kwargs):
+        raise AssertionError("a rollout ran before the memory check")
+
+    for module in (roverswarm.evaluate, roverswarm.mission, roverswarm.stress):
+        monkeypatch.setattr(module, "rollout", rolled)
+    return lambda gib: monkeypatch.setattr(limits, "memory_limit", lambda: gib * 2**30)
+
+
+@pytest.mark.parametrize("command, episodes", [("run", 1), ("stress", 500)])
+def test_mission_commands_refuse_episodes_or_an_episode_length_past_memory_before_any_rollout(
+    command, episodes, memory_of, tmp_path, capsys
+):
+    """`mission run` and `mission stress` estimate their episodes as `evaluate` does: too many
+    episodes, or a mission file's episode_length too long, is one line naming it (it was a JAX
+    RESOURCE_EXHAUSTED traceback, or all the memory), before any rollout and any file."""
+    memory_of(16)
+    out = str(tmp_path / "out")
+    refused(
+        ["mission", command, MISSION, "--episodes", "99999999999", "--out", out],
+        "for the evaluation batch (--episodes 99999999999, the mission's episode_length 25), and this process may "
+        "use 16.0 GiB; lower one of them",
+        capsys,
+    )
+    long = tmp_path / "long.yaml"
+    long.write_text(Path(MISSION).read_text().replace("episode_length: 25 ", "episode_length: 1000000000 "))
+    if episodes == 1:
+        length = "(the mission's episode_length 1000000000), and this process may use 16.0 GiB; lower it"
+    else:
+        length = f"(--episodes {episodes}, the mission's episode_length 1000000000)"
+    refused(["mission", command, str(long), "--out", out], length, capsys)
+    assert not Path(out).exists()
+
+
+def test_evaluate_checks_the_memory_of_every_size_it_runs_before_any_rollout(memory_of, tmp_path, capsys):
+    """A size-agnostic run evaluated on a larger scenario: the batch is estimated at each target
+    size (it was at the run's own, paper-3, and paper-64 then ran for minutes toward all the
+    memory), before its checkpoint is read."""
+    from roverswarm.config import with_options
+    from roverswarm.presets import MAPPO
+
+    memory_of(4)  # 12000 episodes of paper-3 take 0.3 GiB, of paper-64 34 GiB
+    config = dataclasses.replace(
+        with_options(MAPPO, {"network": "nearest", "entity_nearest": 4, "hidden": (16,)}), scenario="paper-3"
+    )
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(config_to_json(config))
+    (run / "checkpoint.npz").write_bytes(b"")  # never read: the estimate comes first
+    for scenario in ("paper-64", "paper-2..64"):
+        refused(
+            ["evaluate", str(run), "--scenario", scenario, "--episodes", "12000"],
+            f"GiB of it for the evaluation batch (--episodes 12000, --scenario {scenario}), and this process may use "
+            "4.0 GiB; lower one of them",
+            capsys,
+        )

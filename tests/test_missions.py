@@ -400,6 +400,22 @@ def test_mission_run_writes_routes_animation_and_metrics(tmp_path, capsys):
     assert len(frames) == 26 and imageio.imread(out / "routes.png").std() > 10
 
 
+@pytest.mark.parametrize("command", ["run", "stress"])
+def test_the_mission_commands_refuse_an_out_folder_holding_a_training_run(command, tmp_path, capsys):
+    """`--policy RUN --out RUN` overwrote the run's metrics.csv, and `train --resume RUN` then found
+    it damaged: a folder with a run's config.json and checkpoint.npz is refused, before any work."""
+    run = tmp_path / "run"
+    run.mkdir()
+    for name in ("config.json", "checkpoint.npz", "metrics.csv"):
+        (run / name).write_text(f"the run's {name}")
+    assert main(["mission", command, str(EXAMPLES / "mission.yaml"), "--episodes", "2", "--out", str(run)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert f"--out: '{run}' holds a training run (config.json and checkpoint.npz)" in err
+    assert sorted(p.name for p in run.iterdir()) == ["checkpoint.npz", "config.json", "metrics.csv"]
+    assert (run / "metrics.csv").read_text() == "the run's metrics.csv"
+
+
 def test_mission_stress_reports_both_conditions_for_policy_and_oracle(tmp_path):
     rows = stress_mission(EXAMPLES / "survey.yaml", "random", tmp_path, episodes=40)
     assert [(r["policy"], r["condition"]) for r in rows] == [

@@ -21,10 +21,10 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from roverswarm.env.mars import EnvParams
 from roverswarm.env.scenarios import get_scenario, range_sizes, scenario_sizes
 from roverswarm.errors import require
-from roverswarm.limits import check_memory, check_seed, evaluation_parts
+from roverswarm.limits import check_seed
 from roverswarm.policies import ORACLE, RANDOM, shielded
 from roverswarm.rollout import normalized_score, rollout
-from roverswarm.runs import Partners, Run, SubPolicies, check_fits
+from roverswarm.runs import Partners, Run, SubPolicies, check_fits, check_rollout_memory
 
 
 @dataclass(frozen=True)
@@ -78,10 +78,11 @@ def evaluate_run(
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
     check_seed(seed)
     run = Run(out)
-    check_memory(evaluation_parts(run.config, run.params, episodes), "this evaluation")
+    targets = _targets(run, scenario)
+    sets = f"--episodes {episodes}" + (f", --scenario {scenario}" if scenario is not None else "")
+    check_rollout_memory(run, [params for _, params in targets], episodes, sets, "this evaluation")  # every size
     key = jax.random.PRNGKey(seed)
     named = scenario is not None or (run.config.mission is None and range_sizes(run.config.scenario) is not None)
-    targets = _targets(run, scenario)
     rows = []
     with _progress(progress) as show:
         for name, params in targets:
@@ -123,6 +124,10 @@ def _targets(run: Run, scenario: str | None) -> list[tuple[str, EnvParams]]:
     sizes = scenario_sizes(name)
     names = [name] if len(sizes) == 1 else [f"paper-{n}" for n in sizes]
     targets = [(n, get_scenario(n).replace(nearest_first=run.params.nearest_first)) for n in names]
+    hint = (
+        f"Its policies drive those numbers only: omit --scenario (its own {run.config.env_name()}) or give a scenario "
+        "of the same numbers; for any size, train with --network nearest (or entity with --algo mappo or ippo)."
+    )
     for target, params in targets:  # the run's own check, without loading its networks once per size
-        check_fits(run, params, f"scenario '{target}'")
+        check_fits(run, params, f"scenario '{target}'", hint, "--scenario")
     return targets

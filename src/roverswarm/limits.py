@@ -243,17 +243,29 @@ def training_parts(config: TrainConfig, params: EnvParams) -> list[Part]:
     return parts
 
 
-def evaluation_parts(config: TrainConfig, params: EnvParams, episodes: int, flag: str = "--episodes") -> list[Part]:
-    """The memory of running ``episodes`` deterministic episodes of one of ``config``'s policies
-    at once (the paths, observations and activations :func:`roverswarm.rollout.rollout` keeps)."""
+def networks_part(config: TrainConfig, params: EnvParams) -> Part:
+    """Every seed's networks of ``config`` as a run folder holds them (:func:`network_bytes` at
+    ``params``, the run's own environment), naming the options that set them."""
+    return Part("networks", network_bytes(config, params), _options(config, "hidden", "ensemble", "seeds"))
+
+
+def batch_part(params: EnvParams, episodes: int, width: int, options: str) -> Part:
+    """The memory of running ``episodes`` deterministic episodes of ``params`` at once: the paths,
+    observations and activations (hidden layers ``width`` wide in total; 0 for random and the
+    oracle) :func:`roverswarm.rollout.rollout` keeps. ``options`` name what sets it in the error."""
     from roverswarm.env.mars import observation_size
 
     n, obs, steps = params.num_rovers, observation_size(params), params.max_steps + 1
-    per_episode = steps * (n * (obs + 4 * sum(config.learner.hidden) + 4) + params.num_pois + 2) * 4
-    networks = network_bytes(config, params)
+    per_episode = steps * (n * (obs + 4 * width + 4) + params.num_pois + 2) * 4
+    return Part("evaluation batch", episodes * per_episode, options)
+
+
+def evaluation_parts(config: TrainConfig, params: EnvParams, episodes: int, flag: str = "--episodes") -> list[Part]:
+    """The memory of running ``episodes`` deterministic episodes of one of ``config``'s policies
+    at once: its networks (:func:`networks_part`) and :func:`batch_part`."""
     return [
-        Part("networks", networks, _options(config, "hidden", "ensemble", "seeds")),
-        Part("evaluation batch", episodes * per_episode, f"{flag} {episodes}"),
+        networks_part(config, params),
+        batch_part(params, episodes, sum(config.learner.hidden), f"{flag} {episodes}"),
     ]
 
 
@@ -264,9 +276,10 @@ def check_memory(parts: list[Part], what: str) -> None:
     if need <= MEMORY_SHARE * have:
         return
     top = max(parts, key=lambda p: p.bytes)
+    which = "it" if "," not in top.options else "one of them"
     raise UserError(
         f"{what} needs about {need / GiB:,.1f} GiB, {top.bytes / GiB:,.1f} GiB of it for the {top.what} "
-        f"({top.options}), and this process may use {have / GiB:,.1f} GiB; lower {'it' if ',' not in top.options else 'one of them'}"
+        f"({top.options}), and this process may use {have / GiB:,.1f} GiB; lower {which}"
     )
 
 

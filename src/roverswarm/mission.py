@@ -12,7 +12,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal, Union
+from typing import Annotated, Iterable, Literal, Union
 
 import jax
 import numpy as np
@@ -27,7 +27,7 @@ from roverswarm.errors import require
 from roverswarm.limits import check_seed
 from roverswarm.policies import Policy
 from roverswarm.rollout import MissionStats, Rollout, rollout
-from roverswarm.runs import folder_lock, write_csv
+from roverswarm.runs import check_not_run, folder_lock, write_csv
 
 
 @dataclass(frozen=True)
@@ -97,9 +97,12 @@ class MissionConfig:
 _FAILURE = re.compile(r"^(\d+)@(\d+)$")
 
 
-def load_policy(spec: str, mission: Mission, seed: int = 0, shield: bool = False) -> Policy:
+def load_policy(spec: str, mission: Mission, seed: int = 0, shield: bool = False, episodes: int = 1) -> Policy:
     """``oracle``, ``random``, or seed ``seed`` of the trained run in folder ``spec``, checked
-    against the mission's numbers of rovers, POIs and traps; with ``shield``, behind the safety layer."""
+    against the mission's numbers of rovers, POIs and traps, and against memory for ``episodes``
+    of the mission's episodes at once (``--episodes`` and the mission's ``episode_length``), before
+    any rollout; with ``shield``, behind the safety layer."""
+    length = f"the mission's episode_length {mission.params.max_steps}"
     return runs.load_policy(
         spec,
         mission.params,
@@ -107,6 +110,8 @@ def load_policy(spec: str, mission: Mission, seed: int = 0, shield: bool = False
         seed,
         "Train on the mission with `roverswarm train --mission FILE`.",
         shield,
+        episodes,
+        f"--episodes {episodes}, {length}" if episodes > 1 else length,  # one episode is the fewest
     )
 
 
@@ -159,9 +164,16 @@ def _fmt(value: object) -> str:
     return str(value)
 
 
-def write_rows(rows: list[dict[str, object]], path: Path) -> None:
-    """CSV with NaN (never observed, never completed) as an empty cell."""
-    write_csv(path, [{k: ("" if isinstance(v, float) and np.isnan(v) else v) for k, v in row.items()} for row in rows])
+TRAJECTORY_COLUMNS = ["episode", "step", "rover", "x", "y", "working", "pois_observed"]
+"""Columns of ``trajectories.csv``."""
+
+
+def write_rows(rows: Iterable[dict[str, object]], path: Path, columns: list[str] | None = None) -> None:
+    """CSV with NaN (never observed, never completed) as an empty cell, written row by row as
+    ``rows`` come (a generator is never held whole); ``columns`` default to the first row's keys
+    (``rows`` is then a list)."""
+    cells = ({k: ("" if isinstance(v, float) and np.isnan(v) else v) for k, v in row.items()} for row in rows)
+    write_csv(path, cells, columns or list(rows[0]))
 
 
 def markdown_table(header: list[str], rows: list[list[object]]) -> str:
@@ -268,12 +280,13 @@ def run_mission(
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
     require(animation in ("gif", "mp4"), f"--animation must be gif or mp4, got '{animation}'")
     check_seed(seed)
+    out = Path(out)
+    check_not_run(out)
     mission = load_mission(mission_path)
-    policy = load_policy(policy_spec, mission, policy_seed, shield)
+    policy = load_policy(policy_spec, mission, policy_seed, shield, episodes)
     fail_step = parse_failures(list(failures), mission.params)
     data = rollout(policy, jax.random.PRNGKey(seed), mission.params, episodes, fail_step=fail_step)
     stats = MissionStats.of(data)
-    out = Path(out)
     with folder_lock(out):
         files = {
             name: out / name
@@ -286,7 +299,7 @@ def run_mission(
                 "mission.png",
             )
         }
-        trajectory = [
+        trajectory = (  # row by row as it is written: a list of every rover's every step outgrew the rollout
             {
                 "episode": e,
                 "step": t,
@@ -299,8 +312,8 @@ def run_mission(
             for e in range(episodes)
             for t in range(data.rover_pos.shape[1])
             for i, (x, y) in enumerate(data.rover_pos[e, t])
-        ]
-        write_rows(trajectory, files["trajectories.csv"])
+        )
+        write_rows(trajectory, files["trajectories.csv"], TRAJECTORY_COLUMNS)
         write_rows(_metrics_rows(stats, mission), files["metrics.csv"])
         files["metrics.md"].write_text(mission_report(stats, mission, policy.name, fail_step))
         title = f"{mission.name}: {policy.name}"

@@ -15,7 +15,7 @@ import functools
 import os
 import socket
 from pathlib import Path
-from typing import Any, Iterator, Literal
+from typing import Any, Iterable, Iterator, Literal
 
 import jax
 import numpy as np
@@ -24,7 +24,7 @@ from roverswarm.config import TrainConfig, validate
 from roverswarm.env.mars import EnvParams, count_text
 from roverswarm.errors import UserError, require
 from roverswarm.learners import learner_family
-from roverswarm.limits import check_memory, evaluation_parts, open_limited, read_config
+from roverswarm.limits import batch_part, check_memory, evaluation_parts, networks_part, open_limited, read_config
 from roverswarm.metrics import EPISODE_METRICS, reduce_metric
 from roverswarm.policies import REFERENCE_POLICIES, Policy, mixed_policy, shielded, trained_policy
 from roverswarm.storage import atomic_write, read_arrays, restore, trained_episodes
@@ -93,6 +93,21 @@ def folder_lock(folder: Path) -> Iterator[None]:
             folder.rmdir()
 
 
+def holds_run(folder: Path) -> bool:
+    """Whether ``folder`` holds a training run: its ``config.json`` and ``checkpoint.npz``."""
+    return (folder / CONFIG).exists() and (folder / CHECKPOINT).exists()
+
+
+def check_not_run(out: Path) -> None:
+    """:class:`UserError` if the output folder ``out`` (``--out``) holds a training run, whose
+    files (``metrics.csv``, ...) another command's outputs would overwrite or mix with."""
+    require(
+        not holds_run(out),
+        f"--out: '{out}' holds a training run (config.json and checkpoint.npz), whose files these outputs "
+        "would overwrite or mix with; give --out a folder of its own",
+    )
+
+
 def _held(folder: Path, path: Path, owner: str) -> str:
     return (
         f"'{folder}' is being written by process {owner} (its {LOCK}); wait for it to finish, choose "
@@ -158,9 +173,9 @@ def metric_rows(
     return rows
 
 
-def write_csv(path: Path, rows: list[dict], columns: list[str] | None = None) -> None:
-    """``rows`` (dicts with the same keys; ``columns``, default the first row's) as a CSV file,
-    written atomically (temp file + rename)."""
+def write_csv(path: Path, rows: Iterable[dict], columns: list[str] | None = None) -> None:
+    """``rows`` (dicts with the same keys; ``columns``, default the first row's, ``rows`` then a
+    list) as a CSV file, written atomically (temp file + rename) row by row as they come."""
 
     def write(f) -> None:
         writer = csv.DictWriter(f, fieldnames=columns or list(rows[0]))
@@ -236,10 +251,7 @@ class Run:
 
     def __init__(self, folder: str | os.PathLike):
         self.folder = Path(folder)
-        require(
-            (self.folder / CONFIG).exists() and (self.folder / CHECKPOINT).exists(),
-            f"'{self.folder}' holds no trained run (config.json and checkpoint.npz)",
-        )
+        require(holds_run(self.folder), f"'{self.folder}' holds no trained run (config.json and checkpoint.npz)")
         self.config: TrainConfig = read_config(self.folder / CONFIG)
         self.params: EnvParams = validate(self.config)
         check_memory(evaluation_parts(self.config, self.params, 0), f"the run in '{self.folder}'")
@@ -320,33 +332,54 @@ class Run:
 
 
 def load_policy(
-    spec: str, params: EnvParams, target: str, seed: int = 0, hint: str = "", shield: bool = False
+    spec: str,
+    params: EnvParams,
+    target: str,
+    seed: int = 0,
+    hint: str = "",
+    shield: bool = False,
+    episodes: int = 1,
+    sets: str = "",
 ) -> Policy:
     """``oracle``, ``random``, or seed ``seed`` of the trained run in folder ``spec``, checked
-    against ``params``'s numbers of rovers, POIs and traps (the positions may differ); with
+    against ``params``'s numbers of rovers, POIs and traps (the positions may differ) and, before
+    its networks are read, against memory for ``episodes`` episodes at once on ``params``
+    (:func:`check_rollout_memory`; ``sets``, default ``target``, names what sets their size); with
     ``shield``, behind the safety layer (:func:`~roverswarm.policies.shielded`). ``target``
     names ``params`` in the error, ``hint`` ends it."""
-    if spec in REFERENCE_POLICIES:
-        policy = REFERENCE_POLICIES[spec]
-    else:
+    run = None
+    if spec not in REFERENCE_POLICIES:
         require(
             Path(spec).is_dir(),
             f"--policy: expected 'oracle', 'random' or a run folder of `roverswarm train`, got '{spec}'",
         )
         run = Run(spec)
         check_fits(run, params, target, hint)
-        policy = run.policy(seed)
+    check_rollout_memory(run, [params], episodes, sets or target, f"running '{spec}' on {target}")
+    policy = REFERENCE_POLICIES[spec] if run is None else run.policy(seed)
     return shielded(policy) if shield else policy
 
 
-def check_fits(run: Run, params: EnvParams, target: str, hint: str = "") -> None:
+def check_rollout_memory(run: Run | None, sizes: list[EnvParams], episodes: int, sets: str, what: str) -> None:
+    """:func:`~roverswarm.limits.check_memory` of ``episodes`` episodes at once of ``run``'s policies
+    (None: random or the oracle, no networks) on the largest environment of ``sizes``, before any
+    rollout: the networks as the run holds them (its own shapes, whatever size they drive) and
+    the batch (:func:`~roverswarm.limits.batch_part`; ``sets`` names what sets its size, ``what``
+    the work refused)."""
+    width = 0 if run is None else sum(run.config.learner.hidden)
+    batch = max((batch_part(params, episodes, width, sets) for params in sizes), key=lambda part: part.bytes)
+    check_memory(([] if run is None else [networks_part(run.config, run.params)]) + [batch], what)
+
+
+def check_fits(run: Run, params: EnvParams, target: str, hint: str = "", flag: str = "--policy") -> None:
     """:class:`UserError` unless ``run``'s policies can drive ``params``: any size for an
-    any-size run, else the same numbers of rovers, POIs and traps (``target`` names ``params``)."""
+    any-size run, else the same numbers of rovers, POIs and traps (``target`` names ``params``,
+    ``flag`` the option that asked for it)."""
     trained = run.params
     require(
         run.any_size
         or (trained.num_rovers, trained.num_pois, trained.num_traps)
         == (params.num_rovers, params.num_pois, params.num_traps),
-        f"--policy: '{run.folder}' was trained for {count_text(trained)} ({run.config.env_name()}); {target} has "
+        f"{flag}: '{run.folder}' was trained for {count_text(trained)} ({run.config.env_name()}); {target} has "
         f"{count_text(params)}.{' ' + hint if hint else ''}",
     )

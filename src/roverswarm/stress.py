@@ -21,7 +21,7 @@ from roverswarm.limits import check_seed
 from roverswarm.mission import load_policy, markdown_table, write_rows
 from roverswarm.policies import ORACLE, Policy
 from roverswarm.rollout import MissionStats, rollout
-from roverswarm.runs import folder_lock
+from roverswarm.runs import check_not_run, folder_lock
 
 
 def check_failures(failures: int, num_rovers: int) -> None:
@@ -123,12 +123,13 @@ def stress_mission(
     rover failures; writes stress.csv, stress.md and stress.png into ``out``. Returns the rows."""
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
     check_seed(seed)
+    out = Path(out)
+    check_not_run(out)
     mission = load_mission(mission_path)
     check_failures(failures, mission.params.num_rovers)
-    policy = load_policy(policy_spec, mission, policy_seed, shield)
+    policy = load_policy(policy_spec, mission, policy_seed, shield, episodes)  # the oracle beside it needs no more
     policies = [policy] if policy.name == ORACLE.name else [policy, ORACLE]
     rows, curves = stress_rows(policies, mission, episodes, seed, failures)
-    out = Path(out)
     with folder_lock(out):
         write_rows(rows, out / "stress.csv")
         header = [
