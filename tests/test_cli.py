@@ -100,6 +100,17 @@ def test_render_writes_an_animation_and_its_last_frame(tmp_path):
             "(0 = all), got 3",
         ),
         (["train", "--algo", "ddpg", "--critic-neighbors", "1"], "--critic-neighbors needs --algo maddpg"),
+        (["train", "--action-penalty", "-1"], "--action-penalty must be a finite number >= 0, got -1.0"),
+        (["train", "--preset", "mappo", "--init-log-std", "100"], "--init-log-std must be in [-10.0, 2.0]"),
+        (
+            ["train", "--preset", "anysize", "--entity-dim", "0"],
+            "--entity-dim must be >= 1 (each token's width), got 0",
+        ),
+        (["reproduce", "--algorithms"], "--algorithms: give at least one of ddpg, maddpg"),
+        (
+            ["reproduce", "--variants", "a:alpha=1,alpha=2"],
+            "--variants: 'alpha' is given twice in 'a:alpha=1,alpha=2'",
+        ),
     ],
 )
 def test_bad_input_is_one_line_and_exit_code_2(argv, message, capsys, tmp_path, monkeypatch):
@@ -128,7 +139,7 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_episode(tmp_path
         str(tmp_path / "folder.gif"): "is a folder; give a file ending in .gif or .mp4",
     }
     if Path("/proc/self").exists():  # a folder no file can be made in, even by root
-        cases["/proc/ep.gif"] = "folder '/proc' cannot be written"
+        cases["/proc/ep.gif"] = "folder '/proc' cannot be written (it takes no new files)"
     for out, message in cases.items():
         assert main(["render", "--scenario", "paper-2", "--out", out]) == 2
         err = capsys.readouterr().err

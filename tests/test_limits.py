@@ -252,6 +252,32 @@ def test_mission_commands_refuse_episodes_or_an_episode_length_past_memory_befor
     assert not Path(out).exists()
 
 
+def test_training_on_a_mission_names_its_episode_length_when_it_is_too_long(memory_of, tmp_path, capsys):
+    """A mission's episode_length sets the rollouts: the replay that cannot hold one iteration
+    (off-policy) and the memory past the limit (on-policy) name it, not only the options; one
+    past 2^31 is refused by the mission file's own field."""
+    memory_of(16)
+    long = tmp_path / "long.yaml"
+    text = Path(MISSION).read_text()
+    long.write_text(text.replace("episode_length: 25 ", "episode_length: 100000000 "))
+    out = str(tmp_path / "run")
+    refused(
+        ["train", "--mission", str(long), "--out", out],
+        "must hold one iteration's transitions (--num-envs 20 x the mission's episode_length 100000000 = 2000000000)",
+        capsys,
+    )
+    refused(
+        ["train", "--mission", str(long), "--algo", "mappo", "--out", out],
+        "--seeds 1, the mission's episode_length 100000000), and this process may use 16.0 GiB; lower one of them",
+        capsys,
+    )
+    long.write_text(text.replace("episode_length: 25 ", f"episode_length: {2**31} "))
+    refused(
+        ["train", "--mission", str(long), "--out", out], "episode_length: must be an integer from 1 to 2^31 - 1", capsys
+    )
+    assert not Path(out).exists()
+
+
 def test_evaluate_checks_the_memory_of_every_size_it_runs_before_any_rollout(memory_of, tmp_path, capsys):
     """A size-agnostic run evaluated on a larger scenario: the batch is estimated at each target
     size (it was at the run's own, paper-3, and paper-64 then ran for minutes toward all the

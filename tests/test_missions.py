@@ -61,7 +61,7 @@ def with_change(change) -> dict:
         (lambda d: d.pop("rovers"), "mission file: missing field 'rovers'"),
         (lambda d: d["traps"][0].update(depth=3), "traps[0]: unknown field 'depth'"),
         (lambda d: d.update(map_size=-1), "map_size: must be a positive number"),
-        (lambda d: d.update(episode_length=0), "episode_length: must be an integer >= 1"),
+        (lambda d: d.update(episode_length=0), "episode_length: must be an integer from 1 to 2^31 - 1"),
         (lambda d: d.update(pois=[]), "pois: a mission needs at least one POI"),
         (lambda d: d["pois"][0].update(position=[0.1]), "pois[0] 'a' position: expected a position [x, y]"),
         (lambda d: d.update(rovers={"count": 2}), "rovers: give either 'start'"),

@@ -115,6 +115,18 @@ def test_table1_comes_from_the_metrics_files(finished):
     assert markdown.count("\n| ") == 2 and "+8.78%" not in markdown and "+3.08%" in markdown
 
 
+def test_a_grid_without_an_optimizer_pair_says_table1_has_no_comparison(base, finished, tmp_path):
+    """`--algorithms ddpg` (here: its finished runs, copied) has no optimizer arm beside its
+    plain learner: Table I says so in words where it was an empty table."""
+    for scenario in SCENARIOS:
+        shutil.copytree(finished / "runs" / scenario / "ddpg", tmp_path / "runs" / scenario / "ddpg")
+    reproduce(tiny_grid(tmp_path, algorithms=("ddpg",)), base, live=False)
+    assert read_table(tmp_path / "table1.csv") == []
+    said = "No comparison: Table I sets an optimizer arm beside its plain learner"
+    assert (tmp_path / "table1.md").read_text().startswith(said)
+    assert said in (tmp_path / "report.md").read_text()
+
+
 def test_two_optimizer_variants_against_one_maddpg_arm(base, finished, tmp_path, capsys):
     """A grid with two readings of the optimizer beside the plain MADDPG runs of ``finished``
     (copied: the same settings, so the grid keeps them): each variant's Table I rows, its pooled

@@ -103,7 +103,8 @@ def run_sweep(cmd: SweepConfig) -> None:
 
     table = sweep(cmd)
     Console().print(table.read_text(), markup=False, soft_wrap=True)
-    Console().print(f"wrote {table} and {table.with_suffix('.csv')}")
+    written = [table, table.with_suffix(".csv"), table.with_suffix(".png")]
+    Console().print(f"wrote {', '.join(str(path) for path in written if path.exists())}")
 
 
 def print_table(title: str, rows: list[dict[str, object]], left: tuple[str, ...]) -> None:

@@ -214,15 +214,17 @@ def validate(config: TrainConfig) -> EnvParams:
     ):
         require(not on or mixed, f"--{option} needs a range of swarm sizes, such as --scenario paper-2..10")
     entity = config.learner
+    require(entity.entity_dim >= 1, f"--entity-dim must be >= 1 (each token's width), got {entity.entity_dim}")
     require(
-        entity.entity_dim >= 1 and entity.entity_heads >= 1 and entity.entity_dim % entity.entity_heads == 0,
+        entity.entity_heads >= 1 and entity.entity_dim % entity.entity_heads == 0,
         f"--entity-heads ({entity.entity_heads}) must be >= 1 and divide --entity-dim ({entity.entity_dim})",
     )
     require(entity.entity_layers >= 0, f"--entity-layers must be >= 0, got {entity.entity_layers}")
     require(entity.entity_nearest >= 0, f"--entity-nearest must be >= 0 (0: every entity), got {entity.entity_nearest}")
     require(
         entity.network != "nearest" or entity.entity_nearest >= 1,
-        f"--network nearest needs --entity-nearest K >= 1 (how many of each type a rover sees), got {entity.entity_nearest}",
+        "--network nearest needs --entity-nearest K >= 1 (how many of each type a rover sees), got "
+        f"{entity.entity_nearest}",
     )
     require(
         entity.poi_order in POI_ORDERS, f"--poi-order must be one of {', '.join(POI_ORDERS)}, got {entity.poi_order!r}"

@@ -41,9 +41,9 @@ class EvaluateConfig:
     """Runs with --ensemble K: `random` draws every agent's sub-policy per episode, as in
     training; `each` runs sub-policy k of all agents, for every k."""
     scenario: str | None = None
-    """Evaluate on this scenario instead of the run's own: a policy of --network entity on any
-    paper-N or range (paper-2..32: every size of it), any other on its own numbers of rovers,
-    POIs and traps. Default: the run's scenario (every size of a range)."""
+    """Evaluate on this scenario instead of the run's own: a policy of --network entity or
+    nearest on any paper-N or range (paper-2..32: every size of it), any other on its own
+    numbers of rovers, POIs and traps. Default: the run's scenario (every size of a range)."""
     partners: Literal["own", "other-seeds"] = "own"
     """`own`: each seed's agents together; `other-seeds`: agent i of seed s beside the other
     agents of seeds s + 1, s + 2, ... (mod seeds), partners it never trained with (each rover

@@ -222,20 +222,22 @@ def training_parts(config: TrainConfig, params: EnvParams) -> list[Part]:
     # networks: the state, its gradients and the updated copy
     parts = [Part("networks", 3 * network_bytes(config, params), _options(config, "hidden", "ensemble", "seeds"))]
     family = learner_family(config.learner.algo)
+    length = f", the mission's episode_length {steps}" if config.mission else ""  # what else sets the rollouts
     if not family.replay:  # on-policy: the iteration's rollouts and minibatches
         samples = steps * config.num_envs * n  # per seed and iteration
         value_in = obs * (n if config.learner.algo == "mappo" else 1)
         stored = seeds * samples * (obs + value_in + 2 * ACTION_SIZE + 8) * 4
-        parts.append(Part("rollouts", stored, _options(config, "num_envs", "seeds")))
+        parts.append(Part("rollouts", stored, _options(config, "num_envs", "seeds") + length))
         batch = seeds * samples // config.ppo.minibatches * (obs + value_in + 4 * width) * 4 * 3
-        parts.append(Part("minibatches", batch, _options(config, "minibatches", "num_envs", "hidden", "seeds")))
+        options = _options(config, "minibatches", "num_envs", "hidden", "seeds") + length
+        parts.append(Part("minibatches", batch, options))
     else:
         parts.append(
             Part("replay", family.replay_bytes(config, params)[0], _options(config, "buffer_size", "ensemble", "seeds"))
         )
         k = config.learner.ensemble
         rollout = seeds * steps * config.num_envs * n * (obs + k * width + ACTION_SIZE) * 4
-        parts.append(Part("rollouts", rollout, _options(config, "num_envs", "ensemble", "seeds")))
+        parts.append(Part("rollouts", rollout, _options(config, "num_envs", "ensemble", "seeds") + length))
         seen = 1 + config.learner.critic_neighbors if config.learner.critic_neighbors else n  # rovers a critic sees
         critic_in = seen * (obs + ACTION_SIZE)
         batch = seeds * n * k * config.buffer.batch_size * (critic_in + 4 * width) * 4 * 3

@@ -187,7 +187,8 @@ def _check_resumable(config: TrainConfig, out: Path) -> tuple[int, list[dict[str
     spent = training_seconds(rows)
     require(
         done == config.episodes or not budget_spent(config, spent),
-        f"--resume: the run has spent its budget ({spent / 60:.1f} of --budget-minutes {config.budget_minutes:g}); "
+        f"--resume: the run has spent its budget ({spent / 60:.3g} minutes of --budget-minutes "
+        f"{config.budget_minutes:g}); "
         "give a larger --budget-minutes to continue it",
     )
     return done, rows
@@ -302,7 +303,7 @@ def _train(
                     raise RunStopped(f"interrupted at episode {episodes}; {where}")
                 if out_of_time:
                     bar.console.print(
-                        f"--budget-minutes {config.budget_minutes:g} spent after {spent / 60:.1f} minutes: "
+                        f"--budget-minutes {config.budget_minutes:g} spent after {spent / 60:.3g} minutes: "
                         f"the run ends at episode {episodes} of {config.episodes}"
                     )
                     break

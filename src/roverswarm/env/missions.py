@@ -217,8 +217,8 @@ def parse_mission(data: Any, name: str = "mission") -> Mission:
     size = _positive(data.get("map_size", 1.0), "map_size")
     steps = data.get("episode_length", 25)
     require(
-        isinstance(steps, int) and not isinstance(steps, bool) and steps >= 1,
-        f"episode_length: must be an integer >= 1, got {steps!r}",
+        isinstance(steps, int) and not isinstance(steps, bool) and 1 <= steps < 2**31,
+        f"episode_length: must be an integer from 1 to 2^31 - 1 (steps), got {steps!r}",
     )
     stop = data.get("stop_when_complete", True)
     require(isinstance(stop, bool), f"stop_when_complete: must be true or false, got {stop!r}")

@@ -7,6 +7,7 @@ drawn by :mod:`roverswarm.animation` (above the environment: it runs policies).
 
 from __future__ import annotations
 
+import errno
 import tempfile
 import warnings
 from pathlib import Path
@@ -88,9 +89,10 @@ def check_animation_path(path: Path) -> None:
     try:
         with tempfile.NamedTemporaryFile(dir=folder, prefix=f".{path.name}."):
             pass
-    except OSError as error:
+    except OSError as error:  # ENOENT in a folder that exists: a file system that makes no files (/proc)
+        reason = "it takes no new files" if error.errno == errno.ENOENT else error.strerror or error
         raise UserError(
-            f"--out '{path}': folder '{folder}' cannot be written ({error.strerror or error}); choose another --out"
+            f"--out '{path}': folder '{folder}' cannot be written ({reason}); choose another --out"
         ) from error
 
 

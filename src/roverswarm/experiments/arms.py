@@ -11,7 +11,7 @@ import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Literal
+from typing import Callable, Literal, get_args
 
 from roverswarm.config import TrainConfig, resumed_config, with_options
 from roverswarm.env.scenarios import SCENARIOS
@@ -197,6 +197,7 @@ def parse_variant(text: str) -> tuple[str, dict[str, object]]:
     for item in filter(None, rest.split(",")):
         key, equals, value = item.partition("=")
         require(equals == "=", f"--variants: '{item}' in '{text}' must be OPTION=VALUE")
+        require(key not in options, f"--variants: '{key}' is given twice in '{text}'")
         require(
             key in OPTIMIZER_OPTIONS,
             f"--variants: '{key}' in '{text}' is not an optimizer option; allowed: {', '.join(OPTIMIZER_OPTIONS)}",
@@ -241,7 +242,8 @@ def plan(config: ReproduceConfig, base: TrainConfig | None = None) -> list[GridR
         require(name in SCENARIOS, f"--scenarios: unknown scenario '{name}'; known: {', '.join(SCENARIOS)}")
     sizes = [SCENARIOS[name].params.num_rovers for name in config.scenarios]
     require(len(set(sizes)) == len(sizes), "--scenarios: give each swarm size N once (the report compares by N)")
-    require(len(set(config.algorithms)) == len(config.algorithms) > 0, "--algorithms: give each algorithm once")
+    require(len(config.algorithms) > 0, f"--algorithms: give at least one of {', '.join(get_args(Algorithm))}")
+    require(len(set(config.algorithms)) == len(config.algorithms), "--algorithms: give each algorithm once")
     require(config.grid_seeds >= 1, f"--seeds must be >= 1, got {config.grid_seeds}")
     require(config.grid_time_chunks >= 0, f"--time-chunks must be >= 0, got {config.grid_time_chunks}")
     require(config.grid_eval_episodes >= 1, f"--eval-episodes must be >= 1, got {config.grid_eval_episodes}")

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from roverswarm.config import config_to_json
-from roverswarm.experiments.arms import ReproduceConfig, optimizer_of
+from roverswarm.experiments.arms import OPTIMIZERS, ReproduceConfig, optimizer_of
 from roverswarm.experiments.results import LABELS, LAST_WINDOW, RunResult, arm_order, label, pooled_rows
 from roverswarm.experiments.significance import mean_interval, relative_change
 from roverswarm.runs import markdown_table
@@ -28,6 +28,12 @@ def _change(change: float, low: float, high: float, p: float) -> str:
 
 
 def table1_markdown(rows: list[dict[str, object]]) -> str:
+    if not rows:
+        pairs = ", ".join(f"{arm} beside {plain}" for arm, plain in OPTIMIZERS.items())
+        return (
+            f"No comparison: Table I sets an optimizer arm beside its plain learner ({pairs}); this grid ran "
+            "neither pair.\n"
+        )
     change = lambda r, part: _change(*(r[f"{part}_{k}"] for k in ("change_pct", "ci_low", "ci_high", "p")))  # noqa: E731
     header = [
         "N",

@@ -50,6 +50,7 @@ def check(config, params: EnvParams) -> None:
     range and compose; else :class:`UserError` naming the option."""
     learner, replay = config.learner, config.buffer
     steps = config.num_envs * params.max_steps
+    length = "the mission's episode_length" if config.mission else "episode length"
     require(
         learner.network != "entity",
         f"--network entity: --algo {learner.algo} has the flat view's and --network nearest's networks; use --algo "
@@ -138,10 +139,11 @@ def check(config, params: EnvParams) -> None:
     require_finite(learner.target_noise, 0, "target-noise")
     require_finite(learner.target_noise_clip, 0, "target-noise-clip")
     require_finite(learner.reward_scale, 0, "reward-scale", strict=True)
+    require_finite(learner.action_penalty, 0, "action-penalty")
     require(
         replay.buffer_size >= steps,
-        f"--buffer-size ({replay.buffer_size}) must hold one iteration's transitions (--num-envs x "
-        f"episode length = {steps})",
+        f"--buffer-size ({replay.buffer_size}) must hold one iteration's transitions (--num-envs "
+        f"{config.num_envs} x {length} {params.max_steps} = {steps})",
     )
     for name in ("noise_std", "noise_final", "noise_decay_episodes"):
         value = getattr(config, name)

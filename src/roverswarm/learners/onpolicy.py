@@ -14,6 +14,7 @@ rover, then ``epochs`` passes over the B samples in ``minibatches`` shuffled min
 from __future__ import annotations
 
 import dataclasses
+import math
 from functools import partial
 from typing import Any
 
@@ -43,6 +44,8 @@ from roverswarm.learners.base import Family, Runner, no_replay, seed_keys, start
 from roverswarm.metrics import episode_totals, step_stats
 from roverswarm.oracle import greedy_plan, oracle_actions
 
+LOG_STD_RANGE = (-10.0, 2.0)
+"""The --init-log-std values accepted: beyond 2 the Gaussian's spread dwarfs the action's [-1, 1]."""
 PPO_METRICS = ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction")
 """Per-update metrics of --algo mappo/ippo (means over the chunk's updates)."""
 
@@ -105,6 +108,12 @@ def check(config, params: EnvParams) -> None:
     require(
         not ppo.teacher_episodes or ppo.teacher > 0,
         f"--teacher-episodes decays the --teacher weight; give --teacher > 0 with it (got --teacher {ppo.teacher})",
+    )
+    require(
+        math.isfinite(ppo.init_log_std) and LOG_STD_RANGE[0] <= ppo.init_log_std <= LOG_STD_RANGE[1],
+        f"--init-log-std must be in [{LOG_STD_RANGE[0]}, {LOG_STD_RANGE[1]}] (a standard deviation from "
+        f"{math.exp(LOG_STD_RANGE[0]):.1e} to {math.exp(LOG_STD_RANGE[1]):.1f} for actions in [-1, 1]), got "
+        f"{ppo.init_log_std}",
     )
     require(ppo.activation in ("tanh", "relu"), f"--activation must be 'tanh' or 'relu', got '{ppo.activation}'")
     require(
