@@ -401,13 +401,27 @@ def test_mission_run_writes_routes_animation_and_metrics(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("command", ["run", "stress"])
-def test_the_mission_commands_refuse_an_out_folder_holding_a_training_run(command, tmp_path, capsys):
+@pytest.mark.parametrize("when", ["before", "during the episodes"])
+def test_the_mission_commands_refuse_an_out_folder_holding_a_training_run(command, when, tmp_path, monkeypatch, capsys):
     """`--policy RUN --out RUN` overwrote the run's metrics.csv, and `train --resume RUN` then found
-    it damaged: a folder with a run's config.json and checkpoint.npz is refused, before any work."""
+    it damaged: a folder with a run's config.json and checkpoint.npz is refused, before any work,
+    and again under the folder's lock (a run trained there while the episodes ran)."""
+    import roverswarm.mission
+    import roverswarm.stress
+
     run = tmp_path / "run"
-    run.mkdir()
-    for name in ("config.json", "checkpoint.npz", "metrics.csv"):
-        (run / name).write_text(f"the run's {name}")
+
+    def make_run() -> None:
+        run.mkdir(exist_ok=True)
+        for name in ("config.json", "checkpoint.npz", "metrics.csv"):
+            (run / name).write_text(f"the run's {name}")
+
+    if when == "before":
+        make_run()
+    else:
+        for module in (roverswarm.mission, roverswarm.stress):
+            original = module.rollout
+            monkeypatch.setattr(module, "rollout", lambda *a, _r=original, **k: (make_run(), _r(*a, **k))[1])
     assert main(["mission", command, str(EXAMPLES / "mission.yaml"), "--episodes", "2", "--out", str(run)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "Traceback" not in err, err

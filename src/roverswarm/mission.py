@@ -288,6 +288,7 @@ def run_mission(
     data = rollout(policy, jax.random.PRNGKey(seed), mission.params, episodes, fail_step=fail_step)
     stats = MissionStats.of(data)
     with folder_lock(out):
+        check_not_run(out)  # again: a run may have been trained there while the episodes ran
         files = {
             name: out / name
             for name in (

@@ -131,6 +131,7 @@ def stress_mission(
     policies = [policy] if policy.name == ORACLE.name else [policy, ORACLE]
     rows, curves = stress_rows(policies, mission, episodes, seed, failures)
     with folder_lock(out):
+        check_not_run(out)  # again: a run may have been trained there while the episodes ran
         write_rows(rows, out / "stress.csv")
         header = [
             "policy",
