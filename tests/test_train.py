@@ -503,6 +503,43 @@ def test_contact_shaping_trains_on_a_heavier_penalty_and_reports_the_environment
         validate(with_options(config, {shaping: -1.0}))
 
 
+def test_trap_margin_charges_the_shaping_on_a_ramp_from_the_margin_to_contact(tiny_ppo_config):
+    """--trap-margin M: each rover pays --trap-shaping k times clip(1 - gap / M, 0, 1) per trap
+    and step, the gap computed here in NumPy from the positions (distance less both radii):
+    the full k on contact, a part within M, nothing beyond it nor for traps or rovers a padded
+    layout leaves out; the environment's reward and contact count are unchanged."""
+    import jax.numpy as jnp
+
+    from roverswarm.env.mars import reset, step_env
+    from roverswarm.env.scenarios import padded_scenario, sized
+    from roverswarm.metrics import shaped_rewards
+
+    k, margin = 2.0, 0.3
+    learner = with_options(tiny_ppo_config, {"trap_shaping": k, "trap_margin": margin}).learner
+    plain = with_options(tiny_ppo_config, {"trap_shaping": k}).learner
+    params = sized(padded_scenario("paper-2..5"), 3).replace(trap_radius=0.25)  # big craters: near and on them
+    near = contact = 0
+    for seed in range(20):
+        _, state = reset(jax.random.PRNGKey(seed), params)
+        offsets = jax.random.uniform(jax.random.PRNGKey(100 + seed), (params.num_rovers, 2), minval=-0.5, maxval=0.5)
+        state = state.replace(rover_pos=state.trap_pos + offsets)  # rover i by trap i, on it or near it
+        actions = jnp.zeros((params.num_rovers, 2))
+        _, after, rewards, _, _, info = step_env(state, actions, params)
+        pos, traps = np.asarray(after.rover_pos, np.float64), np.asarray(after.trap_pos, np.float64)
+        gaps = np.linalg.norm(pos[:, None] - traps[None], axis=-1) - params.rover_radius - 0.25
+        gaps[3:, :] = np.inf  # rovers 3 and 4 and traps 3 and 4 are not in this swarm of 3
+        gaps[:, 3:] = np.inf
+        charge = np.clip(1 - gaps / margin, 0, 1).sum(axis=1)
+        np.testing.assert_allclose(shaped_rewards(rewards, info, learner), rewards - k * charge, atol=1e-5)
+        np.testing.assert_allclose(shaped_rewards(rewards, info, plain), rewards - k * (gaps < 0).sum(1), atol=1e-5)
+        np.testing.assert_array_equal(info["trap_contacts"], (gaps < 0).sum(axis=1))
+        near += int(((gaps > 0) & (gaps < margin)).sum())
+        contact += int((gaps < 0).sum())
+    assert near > 5 and contact > 2  # both parts of the ramp were exercised
+    with pytest.raises(UserError, match="--trap-margin 0.1 sets where --trap-shaping starts"):
+        validate(with_options(tiny_ppo_config, {"trap_margin": 0.1}))
+
+
 @pytest.mark.parametrize("algo", ["maddpg", "mappo"])
 def test_observe_bonus_pays_every_rover_for_each_poi_first_observed(algo, tiny_config, tiny_ppo_config):
     """--observe-bonus b: the learner's rewards exceed the environment's by b times the POIs

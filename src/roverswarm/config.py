@@ -246,8 +246,12 @@ def validate(config: TrainConfig) -> EnvParams:
     for name in ("actor_lr", "critic_lr", "grad_clip"):
         value = getattr(learner, name)
         require(value > 0, f"--{name.replace('_', '-')} must be positive, got {value}")
-    for name in ("trap_shaping", "collision_shaping", "observe_bonus", "unobserved_shaping"):
+    for name in ("trap_shaping", "trap_margin", "collision_shaping", "observe_bonus", "unobserved_shaping"):
         _finite(getattr(learner, name), 0, name.replace("_", "-"))
+    require(
+        not learner.trap_margin or learner.trap_shaping > 0,
+        f"--trap-margin {learner.trap_margin:g} sets where --trap-shaping starts; give --trap-shaping K > 0 with it",
+    )
     require(0 <= learner.gamma <= 1, f"--gamma must be in [0, 1], got {learner.gamma}")
     learner_family(learner.algo).check(config, params)
     return params

@@ -37,7 +37,8 @@ def contact_counts(info: dict[str, jax.Array]) -> dict[str, jax.Array]:
 
 def shaped_rewards(rewards: jax.Array, info: dict[str, jax.Array], learner: AlgoConfig) -> jax.Array:
     """The rewards a learner trains on: the environment's ``rewards`` [..., N] less
-    ``learner.trap_shaping`` more per trap each rover touches (``--trap-shaping``) and
+    ``learner.trap_shaping`` more per trap each rover touches (``--trap-shaping``; with
+    ``--trap-margin M`` from M off the trap, a ramp to the full amount on contact) and
     ``learner.collision_shaping`` more per other rover it touches (``--collision-shaping``), plus
     ``learner.observe_bonus`` for every rover per POI first observed at the step
     (``--observe-bonus``), less ``learner.unobserved_shaping`` times the distance the swarm's
@@ -46,7 +47,10 @@ def shaped_rewards(rewards: jax.Array, info: dict[str, jax.Array], learner: Algo
     swarm = (
         learner.observe_bonus * info["pois_first_observed"] - learner.unobserved_shaping * info["unobserved_distance"]
     )
-    contacts = learner.trap_shaping * info["trap_contacts"] + learner.collision_shaping * info["collisions"]
+    traps = info["trap_contacts"]
+    if learner.trap_margin:  # each trap charged from trap_margin off, in full on contact
+        traps = jnp.sum(jnp.clip(1.0 - info["trap_gaps"] / learner.trap_margin, 0.0, 1.0), axis=-1)
+    contacts = learner.trap_shaping * traps + learner.collision_shaping * info["collisions"]
     return rewards - contacts + swarm[..., None]
 
 

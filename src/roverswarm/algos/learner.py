@@ -122,6 +122,12 @@ class AlgoConfig:
     """Reward shaping: the learner trains on the environment's reward less this much more per
     trap a rover touches per step (the environment charges 1); what it reports, and every
     evaluation, stays the environment's reward. MADDPG, DDPG, MAPPO and IPPO."""
+    trap_margin: float = 0.0
+    """With --trap-shaping: charge the shaping from this far off a trap, not only on contact. A
+    rover whose gap to a trap (centre distance less both radii) is g pays --trap-shaping x
+    clip(1 - g / M, 0, 1) per trap and step: the full amount on contact, nothing at M or
+    farther, a ramp between that tells the learner which way is clear before it touches. 0
+    (default): per contact only. Evaluations stay the environment's. MADDPG, DDPG, MAPPO, IPPO."""
     collision_shaping: float = 0.0
     """Reward shaping: as --trap-shaping, for the other rovers: the learner trains on the
     environment's reward less this much more per other rover a rover touches per step (the

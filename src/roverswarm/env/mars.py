@@ -314,6 +314,8 @@ def step_env(
 
     Returns ``(obs [N, O], state, rewards [N], terminated [], truncated [], info)`` where info
     holds ``collisions`` [N] (other rovers touched), ``trap_contacts`` [N] (traps touched),
+    ``trap_gaps`` [N, T] (each rover's distance to each trap less both radii; below 0 is a
+    contact; infinite for a rover or trap that does not exist),
     ``coverage_distance`` [] (sum over POIs of the nearest rover's distance),
     ``pois_observed`` [] (POIs observed so far this episode), ``pois_first_observed`` []
     (POIs observed for the first time at this step) and ``unobserved_distance`` [] (sum over
@@ -338,10 +340,13 @@ def step_env(
 
     rover_dist = pairwise_dist(pos, pos)
     touching = (rover_dist < 2 * params.rover_radius) & ~jnp.eye(params.num_rovers, dtype=bool)
-    in_trap = pairwise_dist(pos, state.trap_pos) < params.rover_radius + trap_radii(params)
+    trap_dist = pairwise_dist(pos, state.trap_pos)
+    in_trap = trap_dist < params.rover_radius + trap_radii(params)
+    trap_gaps = trap_dist - params.rover_radius - trap_radii(params)
     if masks is not None:
         touching = touching & masks.rovers[:, None] & masks.rovers[None, :]
         in_trap = in_trap & masks.rovers[:, None] & masks.traps[None, :]
+        trap_gaps = jnp.where(masks.rovers[:, None] & masks.traps[None, :], trap_gaps, jnp.inf)
     collisions = jnp.sum(touching, axis=1)
     trap_contacts = jnp.sum(in_trap, axis=1)
     coverage = coverage_distance(pos, state.poi_pos, masks)
@@ -356,6 +361,7 @@ def step_env(
     info = {
         "collisions": collisions,
         "trap_contacts": trap_contacts,
+        "trap_gaps": trap_gaps,
         "coverage_distance": coverage,
         "pois_observed": seen,
         "pois_first_observed": seen - seen_before,

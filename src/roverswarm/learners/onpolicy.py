@@ -57,6 +57,7 @@ PPO_USES = (
     "grad_clip",
     "hidden",
     "trap_shaping",
+    "trap_margin",
     "collision_shaping",
     "observe_bonus",
     "unobserved_shaping",
