@@ -9,6 +9,8 @@
         --out docs/results/any-size/any-size-shield-trained  # trained behind it
     python docs/results/any-size/any_size.py --specialists runs/specialists  # one network per size, then the figure
     python docs/results/any-size/any_size.py --run runs/ddpg-anysize --algo ddpg --episodes 60000  # off-policy
+    python docs/results/any-size/any_size.py --run runs/anysize-margin --trap-shaping 2 --trap-margin 0.1 \
+        --out docs/results/any-size/any-size-margin  # a margin round the traps (twenty-first round)
 
 Trains ``roverswarm train --preset anysize --seeds 5`` (MAPPO over each rover's nearest
 entities on paper-2..10, a size drawn per episode; with ``--algo ddpg`` or ``maddpg`` the
@@ -149,7 +151,12 @@ def setting(config: TrainConfig) -> str:
     extra += ["stop when complete"] * config.stop_when_complete
     extra += [f"sizes N^-{config.size_draw_power:g}"] * (config.size_draw_power > 0)
     extra += [f"{config.learner.poi_order} POIs first"] * (config.learner.poi_order != "nearest")
-    extra += [f"trap shaping {config.learner.trap_shaping:g}"] * (config.learner.trap_shaping > 0)
+    margin = f" from {config.learner.trap_margin:g} off" if config.learner.trap_margin else ""
+    extra += [f"trap shaping {config.learner.trap_shaping:g}{margin}"] * (config.learner.trap_shaping > 0)
+    hidden = config.learner.hidden
+    extra += [f"{len(hidden)} x {hidden[0]}" if len(set(hidden)) == 1 else f"hidden {hidden}"] * (
+        hidden != PRESETS["anysize"].learner.hidden
+    )
     decay = f" to 0 over {config.ppo.teacher_episodes / 1000:g}k" if config.ppo.teacher_episodes else ""
     extra += [f"teacher {config.ppo.teacher:g}{decay}"] * (config.ppo.teacher > 0)
     extra += ["trained behind the shield"] * config.learner.shield
@@ -253,6 +260,8 @@ def main() -> None:
         help="train --poi-order (default: the preset's)",
     )
     parser.add_argument("--trap-shaping", type=float, default=0.0, help="train --trap-shaping")
+    parser.add_argument("--trap-margin", type=float, default=0.0, help="train --trap-margin (with --trap-shaping)")
+    parser.add_argument("--hidden", type=int, nargs="+", help="train --hidden (default: the preset's)")
     parser.add_argument("--teacher", type=float, default=0.0, help="train --teacher (rows of their own)")
     parser.add_argument(
         "--shield",
@@ -288,11 +297,13 @@ def main() -> None:
             "size_draw_power",
             "poi_order",
             "trap_shaping",
+            "trap_margin",
             "teacher",
             "teacher_episodes",
             "shield",
         )
         chosen = {name: getattr(args, name) for name in options}
+        chosen.update({"hidden": tuple(args.hidden)} if args.hidden else {})
         if args.algo == "mappo":
             config = anysize(args.episodes, args.seeds, **chosen)
         else:
