@@ -139,7 +139,7 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_episode(tmp_path
         str(tmp_path / "folder.gif"): "is a folder; give a file ending in .gif or .mp4",
     }
     if Path("/proc/self").exists():  # a folder no file can be made in, even by root
-        cases["/proc/ep.gif"] = "folder '/proc' cannot be written (it takes no new files)"
+        cases["/proc/ep.gif"] = "folder '/proc' cannot be written (the file system there makes no new files)"
     for out, message in cases.items():
         assert main(["render", "--scenario", "paper-2", "--out", out]) == 2
         err = capsys.readouterr().err

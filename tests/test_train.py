@@ -13,6 +13,7 @@ import socket
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -311,6 +312,11 @@ def test_faults_end_in_one_line_and_exit_2_and_leave_the_run_as_it_was(unbroken,
     shutil.copytree(unbroken.out, run)
     (tmp_path / "file").write_text("not a folder")
     refused(["train", *cli_args(tiny_config), "--out", str(tmp_path / "file")], "is a file")
+    if Path("/proc/self").exists():  # a file system no folder can be made in, even by root
+        refused(
+            ["train", *cli_args(tiny_config), "--out", "/proc/roverswarm-run"],
+            "output folder '/proc/roverswarm-run' cannot be written (the file system there makes no new files)",
+        )
     metrics = (run / METRICS).read_text()
     (run / METRICS).write_text("seed,episodes,episode_reward\n0,100,oops\n")
     refused(["train", "--resume", str(run)], "metrics.csv' is damaged")

@@ -7,6 +7,7 @@ anything else is a bug and keeps its traceback.
 
 from __future__ import annotations
 
+import errno
 import math
 
 
@@ -35,3 +36,9 @@ def require_finite(value: float, low: float, what: str, strict: bool = False) ->
     """``value`` is finite and >= ``low`` (> with ``strict``); else :class:`UserError` naming option ``what``."""
     ok = math.isfinite(value) and (value > low if strict else value >= low)
     require(ok, f"--{what} must be a finite number {'>' if strict else '>='} {low}, got {value}")
+
+
+def unwritable(error: OSError) -> str:
+    """Why a file or folder could not be made in a folder that exists, in words: ENOENT there is
+    a file system that makes none (``/proc``), not a missing path; else the system's reason."""
+    return "the file system there makes no new files" if error.errno == errno.ENOENT else str(error.strerror or error)

@@ -22,7 +22,7 @@ import numpy as np
 
 from roverswarm.config import TrainConfig, validate
 from roverswarm.env.mars import EnvParams, count_text
-from roverswarm.errors import UserError, require
+from roverswarm.errors import UserError, require, unwritable
 from roverswarm.learners import learner_family
 from roverswarm.limits import batch_part, check_memory, evaluation_parts, networks_part, open_limited, read_config
 from roverswarm.metrics import EPISODE_METRICS, reduce_metric
@@ -55,14 +55,14 @@ def folder_lock(folder: Path) -> Iterator[None]:
     except FileExistsError:
         raise UserError(f"output folder '{folder}' is a file (or lies inside one), not a folder") from None
     except OSError as error:  # read-only file system, no permission, ...
-        raise UserError(f"output folder '{folder}' cannot be written ({error.strerror or error})") from error
+        raise UserError(f"output folder '{folder}' cannot be written ({unwritable(error)})") from error
     if not folder.is_dir():
         raise UserError(f"output folder '{folder}' is a file (or lies inside one), not a folder")
     while True:
         try:
             fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
         except OSError as error:
-            raise UserError(f"output folder '{folder}' cannot be written ({error.strerror or error})") from error
+            raise UserError(f"output folder '{folder}' cannot be written ({unwritable(error)})") from error
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:

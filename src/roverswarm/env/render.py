@@ -7,7 +7,6 @@ drawn by :mod:`roverswarm.animation` (above the environment: it runs policies).
 
 from __future__ import annotations
 
-import errno
 import tempfile
 import warnings
 from pathlib import Path
@@ -19,7 +18,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
 from roverswarm.env.mars import EnvParams, observe_radii, trap_radii
-from roverswarm.errors import UserError, require
+from roverswarm.errors import UserError, require, unwritable
 
 ANIMATION_SUFFIXES = (".gif", ".mp4")
 _ROVER_COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#d62728", "#e377c2", "#17becf", "#bcbd22")
@@ -89,10 +88,9 @@ def check_animation_path(path: Path) -> None:
     try:
         with tempfile.NamedTemporaryFile(dir=folder, prefix=f".{path.name}."):
             pass
-    except OSError as error:  # ENOENT in a folder that exists: a file system that makes no files (/proc)
-        reason = "it takes no new files" if error.errno == errno.ENOENT else error.strerror or error
+    except OSError as error:
         raise UserError(
-            f"--out '{path}': folder '{folder}' cannot be written ({reason}); choose another --out"
+            f"--out '{path}': folder '{folder}' cannot be written ({unwritable(error)}); choose another --out"
         ) from error
 
 
