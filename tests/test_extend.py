@@ -173,7 +173,7 @@ def test_a_run_ends_at_its_budget_and_a_larger_budget_continues_it(
         capsys.readouterr()
         assert main(["train", "--resume", str(tmp_path), *more]) == 2
         err = capsys.readouterr().err
-        assert "the run has spent its budget (1 minutes of --budget-minutes 1)" in err and err.count("\n") == 1, err
+        assert "the run has spent its budget (1 of --budget-minutes 1)" in err and err.count("\n") == 1, err
     assert {name: (tmp_path / name).read_bytes() for name in before} == before
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == files
     assert main(["train", "--resume", str(tmp_path), "--budget-minutes", "1.5"]) == 0

@@ -21,7 +21,7 @@ import pytest
 
 import roverswarm.trainer as trainer_module
 from roverswarm.cli import main
-from roverswarm.config import TrainConfig, config_from_json, validate, with_options
+from roverswarm.config import TrainConfig, config_from_json, config_to_json, validate, with_options
 from roverswarm.errors import RunStopped, UserError
 from roverswarm.evaluate import evaluate_run
 from roverswarm.learners import FAMILIES, offpolicy
@@ -504,6 +504,11 @@ def test_contact_shaping_trains_on_a_heavier_penalty_and_reports_the_environment
     assert not np.allclose(kept(trained), kept(plain))
     for name in ("episode_reward", "agent_rewards", contacts):
         np.testing.assert_allclose(trained[-1][name], plain[-1][name], rtol=1e-6)
+    if shaping == "trap_shaping":  # --trap-margin: the same collection, charged also near a trap
+        margined = with_options(config, {shaping: 4.0, "trap_margin": 0.2})
+        assert config_from_json(config_to_json(margined)) == margined  # kept in the run's config.json
+        near = kept(run(margined, params))
+        assert np.all(near <= kept(trained) + 1e-5) and np.any(near < kept(trained) - 0.1)
     flag = "--" + shaping.replace("_", "-")
     with pytest.raises(UserError, match=f"{flag} must be a finite number >= 0, got -1"):
         validate(with_options(config, {shaping: -1.0}))

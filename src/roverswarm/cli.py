@@ -161,7 +161,14 @@ def run_render(cmd: RenderConfig) -> None:
     else:
         where = cmd.scenario or "paper-3"
         params = get_scenario(where)
-    policy = load_policy(cmd.policy, params, f"scenario '{where}'", cmd.policy_seed, shield=cmd.shield)
+    policy = load_policy(
+        cmd.policy,
+        params,
+        f"scenario '{where}'",
+        cmd.policy_seed,
+        cmd.shield,
+        sets=f"one episode of {params.max_steps} steps",
+    )
     png = render_episode(params, policy, cmd.out, cmd.seed, label=f"{where} {policy.name}")
     Console().print(f"wrote {cmd.out} and {png}")
 

@@ -156,6 +156,12 @@ def _check_replay_fits(config: TrainConfig, params: EnvParams) -> None:
     )
 
 
+def _minutes(seconds: float) -> str:
+    """``seconds`` in minutes for a message: 3 significant digits below 1000, whole minutes above."""
+    minutes = seconds / 60
+    return f"{minutes:.3g}" if minutes < 1000 else f"{minutes:,.0f}"
+
+
 def _check_resumable(config: TrainConfig, out: Path) -> tuple[int, list[dict[str, float]]]:
     """``out`` holds a run trained with ``config`` but for its episodes and budget (:data:`RESUME_CHANGES`),
     which may grow to extend it, never below what the checkpoint has trained, and whose budget
@@ -187,8 +193,7 @@ def _check_resumable(config: TrainConfig, out: Path) -> tuple[int, list[dict[str
     spent = training_seconds(rows)
     require(
         done == config.episodes or not budget_spent(config, spent),
-        f"--resume: the run has spent its budget ({spent / 60:.3g} minutes of --budget-minutes "
-        f"{config.budget_minutes:g}); "
+        f"--resume: the run has spent its budget ({_minutes(spent)} of --budget-minutes {config.budget_minutes:g}); "
         "give a larger --budget-minutes to continue it",
     )
     return done, rows
@@ -303,7 +308,7 @@ def _train(
                     raise RunStopped(f"interrupted at episode {episodes}; {where}")
                 if out_of_time:
                     bar.console.print(
-                        f"--budget-minutes {config.budget_minutes:g} spent after {spent / 60:.3g} minutes: "
+                        f"--budget-minutes {config.budget_minutes:g} spent after {_minutes(spent)} minutes: "
                         f"the run ends at episode {episodes} of {config.episodes}"
                     )
                     break

@@ -10,7 +10,8 @@
     python docs/results/any-size/any_size.py --specialists runs/specialists  # one network per size, then the figure
     python docs/results/any-size/any_size.py --run runs/ddpg-anysize --algo ddpg --episodes 60000  # off-policy
     python docs/results/any-size/any_size.py --run runs/anysize-margin --trap-shaping 2 --trap-margin 0.1 \
-        --out docs/results/any-size/any-size-margin  # a margin round the traps (twenty-first round)
+        --hidden 128 128 128 128 --out /tmp/margin  # a margin round the traps (not run at 5 seeds: its
+        # twenty-first round's rows are 2-seed probes, probe.py, docs/results/any-size/README.md)
 
 Trains ``roverswarm train --preset anysize --seeds 5`` (MAPPO over each rover's nearest
 entities on paper-2..10, a size drawn per episode; with ``--algo ddpg`` or ``maddpg`` the

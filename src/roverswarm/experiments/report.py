@@ -31,8 +31,8 @@ def table1_markdown(rows: list[dict[str, object]]) -> str:
     if not rows:
         pairs = ", ".join(f"{arm} beside {plain}" for arm, plain in OPTIMIZERS.items())
         return (
-            f"No comparison: Table I sets an optimizer arm beside its plain learner ({pairs}); this grid ran "
-            "neither pair.\n"
+            f"No comparison: Table I sets an optimizer arm beside its plain learner at the same N ({pairs}); "
+            "this grid has no such pair.\n"
         )
     change = lambda r, part: _change(*(r[f"{part}_{k}"] for k in ("change_pct", "ci_low", "ci_high", "p")))  # noqa: E731
     header = [
@@ -65,6 +65,20 @@ def pooled_markdown(rows: list[dict[str, object]]) -> str:
     return markdown_table(
         header, [[str(r["arm"]), str(r["sizes"]), _change(*r["best"]), _change(*r["last"])] for r in rows]
     )
+
+
+def _table1_notes(rows: list[dict[str, object]], results: list[RunResult], time_note: str) -> str:
+    """What Table I's columns mean, and its changes pooled across N (for a table with rows)."""
+    return f"""Relative changes of the means, `100 * (optimizer - plain) / |plain|`. Rewards: per seed, the maximum mean
+episode reward and the mean over the last {LAST_WINDOW} episodes (training rows, noise on), compared paired
+over the seeds the arms share (delta-method 95% intervals, paired t-test p-values). `p, Holm`: the
+max-reward p-value adjusted by Holm's step-down method for all {len(rows)} rows of the table, one family
+(the verdicts below count it).
+{time_note}
+
+Pooled across N (every seed's relative difference, one-sample t-test):
+
+{pooled_markdown(pooled_rows(results))}"""
 
 
 def verdicts(results: list[RunResult], rows: list[dict[str, object]]) -> list[str]:
@@ -221,16 +235,7 @@ counted); training time recorded in the runs' metrics (all runs, all chunks, whi
 ## Table I: the experience sample optimizer vs the same learner without it
 
 {table1_markdown(rows)}
-Relative changes of the means, `100 * (optimizer - plain) / |plain|`. Rewards: per seed, the maximum mean
-episode reward and the mean over the last {LAST_WINDOW} episodes (training rows, noise on), compared paired
-over the seeds the arms share (delta-method 95% intervals, paired t-test p-values). `p, Holm`: the
-max-reward p-value adjusted by Holm's step-down method for all {len(rows)} rows of the table, one family
-(the verdicts below count it).
-{time_note}
-
-Pooled across N (every seed's relative difference, one-sample t-test):
-
-{pooled_markdown(pooled_rows(results))}
+{_table1_notes(rows, results, time_note) if rows else ""}
 ## Final policies, deterministic evaluation
 
 Every seed's final policy on the same {config.grid_eval_episodes} episodes as the random (score 0)
