@@ -68,6 +68,22 @@ def test_render_writes_an_animation_and_its_last_frame(tmp_path):
     assert not np.array_equal(np.asarray(frames[0])[..., :3], np.asarray(frames[-1])[..., :3])
 
 
+def test_render_drives_the_policy_behind_the_safety_layer_with_shield(tmp_path, monkeypatch, capsys):
+    """`render --shield` hands the episode the policy behind the layer, and without it the policy as it is."""
+    import roverswarm.animation
+
+    drawn = []
+    monkeypatch.setattr(
+        roverswarm.animation, "render_episode", lambda p, policy, *a, **k: drawn.append(policy) or "x.png"
+    )
+    for extra in (["--shield"], []):
+        assert (
+            main(["render", "--scenario", "paper-2", "--policy", "random", "--out", str(tmp_path / "e.gif"), *extra])
+            == 0
+        )
+    assert [(p.name, p.shield) for p in drawn] == [("random, shielded", True), ("random", False)]
+
+
 @pytest.mark.parametrize(
     "argv, message",
     [

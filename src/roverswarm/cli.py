@@ -166,7 +166,7 @@ def run_render(cmd: RenderConfig) -> None:
         params,
         f"scenario '{where}'",
         cmd.policy_seed,
-        cmd.shield,
+        shield=cmd.shield,
         sets=f"one episode of {params.max_steps} steps",
     )
     png = render_episode(params, policy, cmd.out, cmd.seed, label=f"{where} {policy.name}")
