@@ -66,6 +66,10 @@ def test_a_wrong_typed_config_json_is_refused_by_every_command(tiny_config, tmp_
     (run / "checkpoint.npz").write_bytes(b"")
     for argv in (["train", "--resume", str(run)], ["evaluate", str(run)]):
         refused(argv, "config.json: seeds must be an integer, got 2.0", capsys)
+    raw["seeds"], raw["learner"]["action_penalty"] = 2, -1.0  # well typed, a value this version refuses
+    (run / "config.json").write_text(json.dumps(raw))
+    for argv in (["evaluate", str(run)], ["render", "--policy", str(run), "--out", str(tmp_path / "e.gif")]):
+        refused(argv, f"the run in '{run}': its config.json: --action-penalty must be a finite number >= 0", capsys)
 
 
 @pytest.fixture(scope="module")

@@ -253,7 +253,10 @@ class Run:
         self.folder = Path(folder)
         require(holds_run(self.folder), f"'{self.folder}' holds no trained run (config.json and checkpoint.npz)")
         self.config: TrainConfig = read_config(self.folder / CONFIG)
-        self.params: EnvParams = validate(self.config)
+        try:
+            self.params: EnvParams = validate(self.config)
+        except UserError as error:  # a setting this version refuses (edited, or from an older one)
+            raise UserError(f"the run in '{self.folder}': its config.json: {error}") from None
         check_memory(evaluation_parts(self.config, self.params, 0), f"the run in '{self.folder}'")
 
     @classmethod
