@@ -262,15 +262,6 @@ def batch_part(params: EnvParams, episodes: int, width: int, options: str) -> Pa
     return Part("evaluation batch", episodes * per_episode, options)
 
 
-def evaluation_parts(config: TrainConfig, params: EnvParams, episodes: int, flag: str = "--episodes") -> list[Part]:
-    """The memory of running ``episodes`` deterministic episodes of one of ``config``'s policies
-    at once: its networks (:func:`networks_part`) and :func:`batch_part`."""
-    return [
-        networks_part(config, params),
-        batch_part(params, episodes, sum(config.learner.hidden), f"{flag} {episodes}"),
-    ]
-
-
 def check_memory(parts: list[Part], what: str) -> None:
     """Refuse (:class:`UserError`, one line) an estimate past :data:`MEMORY_SHARE` of
     :func:`memory_limit`, naming the largest part and the options that set it."""

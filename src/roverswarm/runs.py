@@ -24,7 +24,7 @@ from roverswarm.config import TrainConfig, validate
 from roverswarm.env.mars import EnvParams, count_text
 from roverswarm.errors import UserError, require, unwritable
 from roverswarm.learners import learner_family
-from roverswarm.limits import batch_part, check_memory, evaluation_parts, networks_part, open_limited, read_config
+from roverswarm.limits import batch_part, check_memory, networks_part, open_limited, read_config
 from roverswarm.metrics import EPISODE_METRICS, reduce_metric
 from roverswarm.policies import REFERENCE_POLICIES, Policy, mixed_policy, shielded, trained_policy
 from roverswarm.storage import atomic_write, read_arrays, restore, trained_episodes
@@ -257,7 +257,7 @@ class Run:
             self.params: EnvParams = validate(self.config)
         except UserError as error:  # a setting this version refuses (edited, or from an older one)
             raise UserError(f"the run in '{self.folder}': its config.json: {error}") from None
-        check_memory(evaluation_parts(self.config, self.params, 0), f"the run in '{self.folder}'")
+        check_memory([networks_part(self.config, self.params)], f"the run in '{self.folder}'")
 
     @classmethod
     def of(cls, config: TrainConfig, learner: Any, folder: str | os.PathLike = "(in memory)") -> Run:
