@@ -341,8 +341,9 @@ def step_env(
     rover_dist = pairwise_dist(pos, pos)
     touching = (rover_dist < 2 * params.rover_radius) & ~jnp.eye(params.num_rovers, dtype=bool)
     trap_dist = pairwise_dist(pos, state.trap_pos)
-    in_trap = trap_dist < params.rover_radius + trap_radii(params)
-    trap_gaps = trap_dist - params.rover_radius - trap_radii(params)
+    reach = params.rover_radius + trap_radii(params)  # centre distance at which a rover touches each trap
+    in_trap = trap_dist < reach
+    trap_gaps = trap_dist - reach
     if masks is not None:
         touching = touching & masks.rovers[:, None] & masks.rovers[None, :]
         in_trap = in_trap & masks.rovers[:, None] & masks.traps[None, :]
