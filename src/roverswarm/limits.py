@@ -20,7 +20,7 @@ import io
 import math
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Iterator
 
@@ -219,8 +219,8 @@ def training_parts(config: TrainConfig, params: EnvParams) -> list[Part]:
     obs = observation_width(config.learner, params)
     seeds, n = config.seeds, params.num_rovers
     steps, width = params.max_steps, sum(config.learner.hidden)
-    # networks: the state, its gradients and the updated copy
-    parts = [Part("networks", 3 * network_bytes(config, params), _options(config, "hidden", "ensemble", "seeds"))]
+    networks = networks_part(config, params)
+    parts = [replace(networks, bytes=3 * networks.bytes)]  # the state, its gradients and the updated copy
     family = learner_family(config.learner.algo)
     length = f", the mission's episode_length {steps}" if config.mission else ""  # what else sets the rollouts
     if not family.replay:  # on-policy: the iteration's rollouts and minibatches
