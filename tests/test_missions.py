@@ -16,7 +16,7 @@ from roverswarm.cli import main
 from roverswarm.env.mars import NEVER, EnvParams, observe_radii, reset, step_env
 from roverswarm.env.missions import MAX_BYTES, MAX_ENTRIES, load_mission, parse_mission
 from roverswarm.errors import UserError
-from roverswarm.mission import load_policy, parse_failures, run_mission
+from roverswarm.mission import load_policy, markdown_table, parse_failures, run_mission
 from roverswarm.oracle import OraclePlan, oracle_goals
 from roverswarm.policies import ORACLE, RANDOM, Policy
 from roverswarm.rollout import EpisodeStats, MissionStats, Rollout, rollout
@@ -55,8 +55,13 @@ def with_change(change) -> dict:
             "move it more than 0.2 from the trap's centre",
         ),
         (lambda d: d["rovers"]["start"].__setitem__(1, [-0.4, -0.8]), "rovers.start[1] overlaps rovers.start[0]"),
-        (lambda d: d["traps"][0].update(radius=-0.1), "traps[0] radius: must be a positive number, got -0.1"),
-        (lambda d: d["pois"][1].update(radius=0), "pois[1] radius: must be a positive number, got 0"),
+        (lambda d: d["traps"][0].update(radius=-0.1), "traps[0] radius: must be a positive number from 1.2e-38 to"),
+        (
+            lambda d: d["pois"][1].update(radius=0),
+            "pois[1] radius: must be a positive number from 1.2e-38 to 3.4e+38, got 0",
+        ),
+        (lambda d: d["traps"][0].update(radius=1e-300), "traps[0] radius: must be a positive number"),  # 0 as float32
+        (lambda d: d["pois"][0].update(radius=1e39), "pois[0] 'a' radius: must be a positive number"),  # inf as float32
         (lambda d: d["pois"][1].pop("position"), "pois[1]: missing field 'position'"),
         (lambda d: d.pop("rovers"), "mission file: missing field 'rovers'"),
         (lambda d: d["traps"][0].update(depth=3), "traps[0]: unknown field 'depth'"),
@@ -77,7 +82,9 @@ def with_change(change) -> dict:
             lambda d: d.update(rovers={"count": 9, "release_zone": {"low": [0, 0], "high": [0.5, 0.5]}}),
             "9 rovers of radius 0.15 need an area",
         ),
-        (lambda d: d["rovers"].update(count=True), "rovers.count (True) differs from the 2 start positions"),
+        (lambda d: d["rovers"].update(count=True), "rovers.count: must be an integer (the number of starts), got True"),
+        (lambda d: d["rovers"].update(count="2"), "rovers.count: must be an integer (the number of starts), got '2'"),
+        (lambda d: d["rovers"].update(count=3), "rovers.count (3) differs from the 2 start positions"),
         (lambda d: d["pois"].__setitem__(1, [0.5, 0.5]), "pois[1]: expected a mapping"),
         (lambda d: d["pois"][1].update(name="a"), "pois[1]: the name 'a' is already used by pois[0]"),
         (lambda d: d["pois"][1].update(name=7), "pois[1] name: must be a non-empty string, got 7"),
@@ -93,6 +100,26 @@ def test_each_kind_of_bad_mission_names_the_offending_entry(change, message):
     with pytest.raises(UserError) as error:
         parse_mission(with_change(change))
     assert message in str(error.value)
+
+
+def test_a_release_zone_mostly_in_craters_is_refused_and_one_mostly_clear_starts_no_rover_in_a_crater():
+    def zone(half: float, radius: float) -> dict:
+        return {
+            "rovers": {"count": 2, "release_zone": {"low": [-half, -half], "high": [half, half]}},
+            "pois": [{"position": [0.9, 0.9]}],
+            "traps": [{"position": [0.0, 0.0], "radius": radius}],
+        }
+
+    # a rover's centre must stay 0.15 + 0.55 = 0.7 from the centre: no point of [-0.5, 0.5]^2 is clear
+    with pytest.raises(UserError, match=r"rovers.release_zone: 0% of it .* is clear of the traps"):
+        parse_mission(zone(0.5, 0.55))
+    # [-1, 1]^2 less a disc of radius 0.7 round the centre: 62% clear (1 - pi 0.49 / 4), accepted
+    params = parse_mission(zone(1.0, 0.55)).params
+    starts = jax.vmap(reset, in_axes=(0, None))(jax.random.split(jax.random.PRNGKey(0), 500), params)[1].rover_pos
+    assert np.linalg.norm(np.asarray(starts), axis=-1).min() >= 0.7 - 1e-6
+    # the same zone with a crater of radius 0.85 (1.0 from its centre) is 21% clear: refused
+    with pytest.raises(UserError, match="need at least 35% of it clear"):
+        parse_mission(zone(1.0, 0.85))
 
 
 def test_a_poi_on_a_craters_rim_is_accepted_when_a_rover_can_observe_it_from_outside():
@@ -286,7 +313,12 @@ def test_a_failed_rover_never_moves_again_even_when_pushed():
 
 @pytest.mark.parametrize(
     "text, message",
-    [("1-5", "expected ROVER@STEP"), ("3@2", "rover must be in [0, 3)"), ("0@25", "step must be in [0, 25)")],
+    [
+        ("1-5", "expected ROVER@STEP"),
+        ("3@2", "rover must be in [0, 3)"),
+        ("0@25", "step must be in [0, 25)"),
+        pytest.param("0@" + "9" * 5000, "expected ROVER@STEP", id="5000-digit step"),  # int() would raise
+    ],
 )
 def test_bad_failures_are_refused(text, message):
     with pytest.raises(UserError, match=message.replace("[", r"\[").replace(")", r"\)")):
@@ -357,6 +389,12 @@ def test_the_oracle_completes_the_example_missions(name):
 # ----------------------------------------------------------------------------- commands
 
 
+def test_a_poi_name_with_a_bar_stays_in_its_column_of_the_report():
+    table = markdown_table(["POI", "first observed (step)"], [["a|b", 3.0]]).splitlines()
+    assert table[2] == "| a\\|b | 3 |"
+    assert all(line.replace("\\|", "").count("|") == 3 for line in table), table
+
+
 def test_mission_stress_prints_its_markdown_table_one_row_per_line(tmp_path, capsys, monkeypatch):
     """Piped (80 columns), the table a user may paste into a report keeps each row on one line."""
     monkeypatch.setenv("COLUMNS", "80")
@@ -376,14 +414,15 @@ def test_mission_run_writes_routes_animation_and_metrics(tmp_path, capsys):
     assert "--fail 0@40: step must be in [0, 25)" in capsys.readouterr().err
     result = run_mission(EXAMPLES / "mission.yaml", "oracle", out, ("2@3",))
     rows = list(csv.DictReader(open(out / "trajectories.csv")))
-    assert len(rows) == (25 + 1) * 3
+    end = int(result.stats.time_to_all[0])  # the mission stops when complete: the rows end there
+    assert end < 25 and len(rows) == (end + 1) * 3
     still = [(r["x"], r["y"]) for r in rows if r["rover"] == "2" and int(r["step"]) >= 3]
     assert len(set(still)) == 1 and all(
         r["working"] == "False" for r in rows if r["rover"] == "2" and int(r["step"]) >= 3
     )
     # the metrics, recomputed from the trajectories with the mission's POI positions and radii
     mission = load_mission(EXAMPLES / "mission.yaml")
-    xy = np.array([[float(r["x"]), float(r["y"])] for r in rows]).reshape(26, 3, 2)
+    xy = np.array([[float(r["x"]), float(r["y"])] for r in rows]).reshape(end + 1, 3, 2)
     near = (
         np.linalg.norm(xy[:, :, None] - mission.params.fixed_pois[None, None], axis=-1) < mission.params.observe_radius
     )
@@ -398,36 +437,54 @@ def test_mission_run_writes_routes_animation_and_metrics(tmp_path, capsys):
     assert "rover 2 at step 3" in (out / "metrics.md").read_text()
     frames = imageio.mimread(out / "mission.gif")
     assert len(frames) == 26 and imageio.imread(out / "routes.png").std() > 10
+    # a failure scheduled after the mission ended is reported as not reached, and never happened
+    late = run_mission(EXAMPLES / "mission.yaml", "oracle", tmp_path / "late", ("2@20",))
+    assert late.stats.success[0] and late.stats.time_to_all[0] < 20
+    report = (tmp_path / "late" / "metrics.md").read_text()
+    assert f"rover 2 at step 20 (not reached: the episode ended at step {late.stats.time_to_all[0]:.0f})" in report
+    assert "| 20 (not reached) |" in report
+    assert all(r["working"] == "True" for r in csv.DictReader(open(tmp_path / "late" / "trajectories.csv")))
 
 
 @pytest.mark.parametrize("command", ["run", "stress"])
-@pytest.mark.parametrize("when", ["before", "during the episodes"])
-def test_the_mission_commands_refuse_an_out_folder_holding_a_training_run(command, when, tmp_path, monkeypatch, capsys):
+def test_the_mission_commands_refuse_an_out_folder_holding_a_training_run(command, tmp_path, capsys):
     """`--policy RUN --out RUN` overwrote the run's metrics.csv, and `train --resume RUN` then found
-    it damaged: a folder with a run's config.json and checkpoint.npz is refused, before any work,
-    and again under the folder's lock (a run trained there while the episodes ran)."""
-    import roverswarm.mission
-    import roverswarm.stress
-
+    it damaged: a folder with a run's config.json and checkpoint.npz is refused, before any work."""
     run = tmp_path / "run"
-
-    def make_run() -> None:
-        run.mkdir(exist_ok=True)
-        for name in ("config.json", "checkpoint.npz", "metrics.csv"):
-            (run / name).write_text(f"the run's {name}")
-
-    if when == "before":
-        make_run()
-    else:
-        for module in (roverswarm.mission, roverswarm.stress):
-            original = module.rollout
-            monkeypatch.setattr(module, "rollout", lambda *a, _r=original, **k: (make_run(), _r(*a, **k))[1])
+    run.mkdir()
+    for name in ("config.json", "checkpoint.npz", "metrics.csv"):
+        (run / name).write_text(f"the run's {name}")
     assert main(["mission", command, str(EXAMPLES / "mission.yaml"), "--episodes", "2", "--out", str(run)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "Traceback" not in err, err
     assert f"--out: '{run}' holds a training run (config.json and checkpoint.npz)" in err
     assert sorted(p.name for p in run.iterdir()) == ["checkpoint.npz", "config.json", "metrics.csv"]
     assert (run / "metrics.csv").read_text() == "the run's metrics.csv"
+
+
+@pytest.mark.parametrize("command", ["run", "stress"])
+def test_the_mission_commands_hold_their_out_folder_from_before_the_episodes(command, tmp_path, monkeypatch, capsys):
+    """A file as --out is refused before the episodes run (it was found only after them), and
+    while they run the folder is locked: a `train --out` there would be refused, not mixed in."""
+    import roverswarm.mission
+    import roverswarm.stress
+    from roverswarm.runs import folder_lock
+
+    out, seen = tmp_path / "out", []
+
+    def locked_rollout(*args, _original=roverswarm.mission.rollout, **kwargs):
+        with pytest.raises(UserError, match="is being written by process"), folder_lock(out):
+            pass
+        seen.append(True)
+        return _original(*args, **kwargs)
+
+    for module in (roverswarm.mission, roverswarm.stress):
+        monkeypatch.setattr(module, "rollout", locked_rollout)
+    (tmp_path / "file").write_text("a file")
+    argv = ["mission", command, str(EXAMPLES / "mission.yaml"), "--episodes", "2", "--out"]
+    assert main([*argv, str(tmp_path / "file")]) == 2
+    assert "is a file" in capsys.readouterr().err and not seen  # refused before any episode
+    assert main([*argv, str(out)]) == 0 and seen
 
 
 def test_mission_stress_reports_both_conditions_for_policy_and_oracle(tmp_path):

@@ -7,7 +7,7 @@ import pytest
 
 from roverswarm.cli import main
 from roverswarm.config import config_from_json
-from roverswarm.env.missions import parse_mission_text
+from roverswarm.env.missions import load_mission, parse_mission_text
 from roverswarm.errors import UserError
 from roverswarm.parsing import load_text
 
@@ -48,6 +48,27 @@ def test_a_document_nested_too_deeply_is_one_error(kind, text):
         load_text(text, kind, "file 'f'")
     with pytest.raises(UserError, match="config.json is not a roverswarm training config"):
         config_from_json("[" * 100_000)
+
+
+@pytest.mark.parametrize("kind", ["YAML", "JSON"])
+def test_an_integer_longer_than_python_converts_is_one_error(kind):
+    with pytest.raises(
+        UserError, match=r"file 'f' is not valid (YAML|JSON): Exceeds the limit \(4300 digits\)"
+    ) as error:
+        load_text('{"radius": ' + "9" * 5000 + "}", kind, "file 'f'")
+    assert "set_int_max_str_digits" not in str(error.value)
+
+
+@pytest.mark.parametrize("suffix", ["json", "yaml"])
+def test_a_mission_file_with_a_byte_order_mark_reads_as_without(suffix, tmp_path):
+    text = '{"rovers": {"start": [[0, 0]]}, "pois": [{"position": [0.5, 0.5]}]}'
+    plain, marked = tmp_path / f"plain.{suffix}", tmp_path / f"marked.{suffix}"
+    plain.write_text(text, encoding="utf-8")
+    marked.write_text(text, encoding="utf-8-sig")
+    assert marked.read_bytes().startswith(b"\xef\xbb\xbf")
+    marked_params, plain_params = load_mission(marked).params, load_mission(plain).params
+    for field in ("fixed_pois", "fixed_starts", "observe_radius"):
+        assert (getattr(marked_params, field) == getattr(plain_params, field)).all(), field
 
 
 def test_numbers_with_an_exponent_read_as_numbers_and_the_rest_as_before():

@@ -94,7 +94,7 @@ class MissionConfig:
     ]
 
 
-_FAILURE = re.compile(r"^(\d+)@(\d+)$")
+_FAILURE = re.compile(r"^(\d{1,9})@(\d{1,9})$")  # at most 9 digits: int() refuses 4300
 
 
 def load_policy(spec: str, mission: Mission, seed: int = 0, shield: bool = False, episodes: int = 1) -> Policy:
@@ -161,7 +161,7 @@ def _fmt(value: object) -> str:
         return "yes" if value else "no"
     if isinstance(value, (float, np.floating)):
         return "never" if np.isnan(value) else f"{value:g}" if float(value).is_integer() else f"{value:.2f}"
-    return str(value)
+    return str(value).replace("|", "\\|")  # a POI named "a|b" stays in its column
 
 
 TRAJECTORY_COLUMNS = ["episode", "step", "rover", "x", "y", "working", "pois_observed"]
@@ -181,10 +181,24 @@ def markdown_table(header: list[str], rows: list[list[object]]) -> str:
     return runs.markdown_table(header, [[_fmt(v) for v in row] for row in rows])
 
 
+def episode_ends(stats: MissionStats, params: EnvParams) -> np.ndarray:
+    """[E] the steps each episode ran: when the mission stops once complete, to the step its
+    last POI was first observed (at least 1: the first step ends one complete at the start);
+    else all ``max_steps``. The rollout's positions after the end repeat the last."""
+    stopped = stats.success & params.terminate_on_complete
+    return np.where(stopped, np.maximum(np.nan_to_num(stats.time_to_all), 1), params.max_steps).astype(int)
+
+
+def _failure_text(rover: int, step: int, end: int) -> str:
+    """``--fail ROVER@STEP`` as reported: a failure the episode ended before is named so."""
+    return f"rover {rover} at step {step}" + (f" (not reached: the episode ended at step {end})" if step >= end else "")
+
+
 def mission_report(stats: MissionStats, mission: Mission, policy: str, fail_step: np.ndarray) -> str:
     """Markdown: the summary, each POI's first observation and each rover's path (episode 0)."""
     dt = float(mission.params.dt)
-    failed = [f"rover {i} at step {s}" for i, s in enumerate(fail_step) if s != NEVER]
+    end = int(episode_ends(stats, mission.params)[0])
+    failed = [_failure_text(i, s, end) for i, s in enumerate(fail_step) if s != NEVER]
     lines = [
         f"# Mission '{mission.name}': {policy}\n",
         f"{mission.counts()}; {mission.params.max_steps} steps of {dt:g} time units"
@@ -216,7 +230,7 @@ def mission_report(stats: MissionStats, mission: Mission, policy: str, fail_step
         markdown_table(
             ["rover", "path length", "failed at step"],
             [
-                [i, length, "-" if s == NEVER else int(s)]
+                [i, length, "-" if s == NEVER else int(s) if s < end else f"{s} (not reached)"]
                 for i, (length, s) in enumerate(zip(stats.path_length[0], fail_step))
             ],
         ),
@@ -250,8 +264,9 @@ def _routes_png(
             textcoords="offset points",
             fontsize=8,
         )
+    end = int(episode_ends(stats, mission.params)[0])
     for i, s in enumerate(fail_step):
-        if s != NEVER:
+        if s < end:  # a failure the episode ended before is not drawn
             x, y = data.rover_pos[0, -1, i]
             ax.plot([x], [y], marker="x", color="black", markersize=14, mew=3)
             ax.annotate(f"rover {i} failed (t={s})", (x, y), xytext=(6, -12), textcoords="offset points", fontsize=8)
@@ -281,14 +296,13 @@ def run_mission(
     require(animation in ("gif", "mp4"), f"--animation must be gif or mp4, got '{animation}'")
     check_seed(seed)
     out = Path(out)
-    check_not_run(out)
-    mission = load_mission(mission_path)
-    policy = load_policy(policy_spec, mission, policy_seed, shield, episodes)
-    fail_step = parse_failures(list(failures), mission.params)
-    data = rollout(policy, jax.random.PRNGKey(seed), mission.params, episodes, fail_step=fail_step)
-    stats = MissionStats.of(data)
-    with folder_lock(out):
-        check_not_run(out)  # again: a run may have been trained there while the episodes ran
+    with folder_lock(out):  # first: a bad --out is refused before the episodes run, and no one else writes there
+        check_not_run(out)
+        mission = load_mission(mission_path)
+        policy = load_policy(policy_spec, mission, policy_seed, shield, episodes)
+        fail_step = parse_failures(list(failures), mission.params)
+        data = rollout(policy, jax.random.PRNGKey(seed), mission.params, episodes, fail_step=fail_step)
+        stats = MissionStats.of(data)
         files = {
             name: out / name
             for name in (
@@ -310,8 +324,8 @@ def run_mission(
                 "working": bool(t < fail_step[i]),
                 "pois_observed": int(data.observed[e, t].sum()),
             }
-            for e in range(episodes)
-            for t in range(data.rover_pos.shape[1])
+            for e, end in enumerate(episode_ends(stats, mission.params))
+            for t in range(end + 1)
             for i, (x, y) in enumerate(data.rover_pos[e, t])
         )
         write_rows(trajectory, files["trajectories.csv"], TRAJECTORY_COLUMNS)

@@ -73,3 +73,5 @@ def load_text(text: str, kind: str, where: str, aliases: bool = True) -> Any:
         raise UserError(f"{where} is nested too deeply to read") from None
     except UserError as error:
         raise UserError(f"{where}: {error}") from None
+    except ValueError as error:  # e.g. an integer of more digits than Python converts (4300)
+        raise UserError(f"{where} is not valid {kind}: {str(error).split(';')[0]}") from None

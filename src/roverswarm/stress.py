@@ -3,7 +3,8 @@
 Many episodes of a mission, each run twice per policy: as it is, and with ``failures`` distinct
 rovers stopping for good, each at its own random step before the policy would have completed
 that episode without them (a later failure changes nothing). The policy runs beside the
-oracle, on the same starts and the same failures.
+oracle, on the same starts and the same failing rovers, each failing at the same share of
+that policy's own time to complete the episode (so the steps differ between policies).
 """
 
 from __future__ import annotations
@@ -124,14 +125,13 @@ def stress_mission(
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
     check_seed(seed)
     out = Path(out)
-    check_not_run(out)
-    mission = load_mission(mission_path)
-    check_failures(failures, mission.params.num_rovers)
-    policy = load_policy(policy_spec, mission, policy_seed, shield, episodes)  # the oracle beside it needs no more
-    policies = [policy] if policy.name == ORACLE.name else [policy, ORACLE]
-    rows, curves = stress_rows(policies, mission, episodes, seed, failures)
-    with folder_lock(out):
-        check_not_run(out)  # again: a run may have been trained there while the episodes ran
+    with folder_lock(out):  # first: a bad --out is refused before the episodes run, and no one else writes there
+        check_not_run(out)
+        mission = load_mission(mission_path)
+        check_failures(failures, mission.params.num_rovers)
+        policy = load_policy(policy_spec, mission, policy_seed, shield, episodes)  # the oracle beside it needs no more
+        policies = [policy] if policy.name == ORACLE.name else [policy, ORACLE]
+        rows, curves = stress_rows(policies, mission, episodes, seed, failures)
         write_rows(rows, out / "stress.csv")
         header = [
             "policy",

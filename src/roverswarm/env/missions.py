@@ -16,7 +16,7 @@ A mission file is YAML or JSON (see ``examples/mission.yaml``)::
 
 Every mistake is one :class:`~roverswarm.errors.UserError` that names the entry: a missing
 or unknown field, a POI, trap or start outside the map, a non-positive radius, a start that
-overlaps a trap or another rover. The environment itself is unchanged: a mission is
+overlaps a trap or another rover, a release zone mostly covered by craters. The environment itself is unchanged: a mission is
 :class:`~roverswarm.env.mars.EnvParams` with ``fixed_pois``, ``fixed_traps`` and
 ``fixed_starts`` or ``start_zone`` set.
 """
@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from roverswarm.env.layouts import LAYOUT_CANDIDATES
 from roverswarm.env.mars import EnvParams, count_text
 from roverswarm.env.validation import validate_params
 from roverswarm.errors import UserError, require
@@ -90,9 +91,16 @@ def _number(value: Any) -> float | None:
     return number if np.isfinite(number) else None
 
 
+_FLOAT32_RANGE = (float(np.finfo(np.float32).tiny), float(np.finfo(np.float32).max))
+
+
 def _positive(value: Any, where: str) -> float:
+    """A positive number that float32 (the environment's arrays) holds: neither 0 nor inf there."""
     number = _number(value)
-    require(number is not None and number > 0, f"{where}: must be a positive number, got {value!r}")
+    require(
+        number is not None and _FLOAT32_RANGE[0] <= number <= _FLOAT32_RANGE[1],
+        f"{where}: must be a positive number from {_FLOAT32_RANGE[0]:.1e} to {_FLOAT32_RANGE[1]:.1e}, got {value!r}",
+    )
     return number
 
 
@@ -136,10 +144,8 @@ def _rovers(data: dict, size: float) -> tuple[int, np.ndarray | None, np.ndarray
         )
         require(len(starts) <= MAX_ENTRIES, f"rovers.start: at most {MAX_ENTRIES} positions, got {len(starts)}")
         count = rovers.get("count", len(starts))
-        require(
-            type(count) is int and count == len(starts),
-            f"rovers.count ({count!r}) differs from the {len(starts)} start positions",
-        )
+        require(type(count) is int, f"rovers.count: must be an integer (the number of starts), got {count!r}")
+        require(count == len(starts), f"rovers.count ({count}) differs from the {len(starts)} start positions")
         points = [_point(p, f"rovers.start[{i}]", size) for i, p in enumerate(starts)]
         return len(points), np.array(points, np.float32), None
     count = rovers.get("count")
@@ -152,13 +158,47 @@ def _rovers(data: dict, size: float) -> tuple[int, np.ndarray | None, np.ndarray
     require(
         low[0] < high[0] and low[1] < high[1], f"rovers.release_zone: low {low} must be below and left of high {high}"
     )
-    side = 2 * EnvParams().rover_radius
     require(
-        (high[0] - low[0]) * (high[1] - low[1]) >= 2 * count * side**2,
-        f"rovers.release_zone: {count} rovers of radius {side / 2:g} need an area of at least {2 * count * side**2:g} "
-        f"to start apart, got {(high[0] - low[0]) * (high[1] - low[1]):g}",
+        (high[0] - low[0]) * (high[1] - low[1]) >= _room(count),
+        f"rovers.release_zone: {count} rovers of radius {EnvParams().rover_radius:g} need an area of at least "
+        f"{_room(count):g} to start apart, got {(high[0] - low[0]) * (high[1] - low[1]):g}",
     )
     return count, None, np.array([low, high], np.float32)
+
+
+def _room(count: int) -> float:
+    """The area a release zone needs for ``count`` rovers to start apart: twice their squares."""
+    return 2 * count * (2 * EnvParams().rover_radius) ** 2
+
+
+ZONE_GRID = 64
+"""Points per side of the grid on which a release zone's part clear of the traps is measured."""
+CLEAR_SHARE = 1 - 0.001 ** (1 / LAYOUT_CANDIDATES)
+"""The least share of a release zone clear of the traps (0.35): each drawn rover takes the first
+of :data:`~roverswarm.env.layouts.LAYOUT_CANDIDATES` uniform candidates clear of them (the
+first if none is), so at most 1 rover in 1000 starts in a crater."""
+
+
+def _check_zone_clear(zone: np.ndarray, count: int, traps: np.ndarray, trap_radii: np.ndarray, rover_radius: float):
+    """Refuse a release zone whose part where a rover's centre is clear of every trap is less
+    than :data:`CLEAR_SHARE` of it, or smaller than the room its rovers need (:func:`_room`);
+    measured on a grid of :data:`ZONE_GRID` x :data:`ZONE_GRID` points, one array operation per trap."""
+    if not len(traps):
+        return
+    (x0, y0), (x1, y1) = zone.astype(np.float64)
+    t = (np.arange(ZONE_GRID) + 0.5) / ZONE_GRID
+    xs, ys = np.meshgrid(x0 + t * (x1 - x0), y0 + t * (y1 - y0))
+    points = np.stack([xs.ravel(), ys.ravel()], axis=1)
+    clear = np.ones(len(points), bool)
+    for trap, reach in zip(traps.astype(np.float64), trap_radii.astype(np.float64) + rover_radius):
+        clear &= np.sum(np.square(points - trap), axis=1) >= reach**2
+    share, area = float(clear.mean()), (x1 - x0) * (y1 - y0)
+    require(
+        share >= CLEAR_SHARE and share * area >= _room(count),
+        f"rovers.release_zone: {share:.0%} of it (an area of {share * area:.3g}) is clear of the traps for a "
+        f"rover's centre; {count} rovers need at least {CLEAR_SHARE:.0%} of it clear and an area of "
+        f"{_room(count):g}: enlarge the zone or move it off the craters",
+    )
 
 
 def _check_clear(starts: np.ndarray, traps: np.ndarray, trap_radii: np.ndarray, rover_radius: float) -> None:
@@ -230,6 +270,8 @@ def parse_mission(data: Any, name: str = "mission") -> Mission:
     _check_observable(poi_names, pois, observe, traps, trap_radius, defaults.rover_radius)
     if starts is not None:
         _check_clear(starts, traps, trap_radius, defaults.rover_radius)
+    else:
+        _check_zone_clear(zone, count, traps, trap_radius, defaults.rover_radius)
     params = EnvParams(
         num_rovers=count,
         num_pois=len(pois),
@@ -261,7 +303,8 @@ def read_mission_text(path: str | Path) -> str:
         len(data) <= MAX_BYTES, f"mission file '{path}' has more than {MAX_BYTES} bytes; at most {MAX_BYTES} are read"
     )
     try:
-        return data.decode("utf-8").replace("\r\n", "\n").replace("\r", "\n")  # as read_text: universal newlines
+        # as read_text: universal newlines; a byte-order mark (some Windows editors write one) dropped
+        return data.decode("utf-8-sig").replace("\r\n", "\n").replace("\r", "\n")
     except UnicodeDecodeError as error:
         raise UserError(f"mission file '{path}' is not valid UTF-8: {error}") from None
 
