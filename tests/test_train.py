@@ -27,7 +27,7 @@ from roverswarm.evaluate import evaluate_run
 from roverswarm.learners import FAMILIES, offpolicy
 from roverswarm.learners.offpolicy import run_buffer
 from roverswarm.presets import REFERENCE, SWARM
-from roverswarm.runs import CHECKPOINT, LOCK, METRICS, Run, read_metrics
+from roverswarm.runs import CHECKPOINT, LOCK, METRICS, Run, folder_lock, read_metrics
 from roverswarm.storage import atomic_write
 from roverswarm.trainer import checkpoint_due, train
 
@@ -281,8 +281,14 @@ def test_a_folder_being_written_is_refused_and_a_stale_lock_is_taken_over(tiny_c
     out = tmp_path / "run"
     out.mkdir()
     (out / "notes.txt").write_text("mine")
-    writer = subprocess.Popen(["sleep", "60"])  # a live process holds the folder
+    # a live roverswarm that holds no flock (an older version) holds the folder
+    writer = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "roverswarm", "train"])
+    stranger = subprocess.Popen(["sleep", "60"])
     try:
+        # a lock naming a live process that is no roverswarm (its number reused) is stale
+        (out / LOCK).write_text(f"{stranger.pid} {socket.gethostname()}")
+        with folder_lock(out):
+            assert (out / LOCK).read_text() == f"{os.getpid()} {socket.gethostname()}"
         (out / LOCK).write_text(f"{writer.pid} {socket.gethostname()}")
         # (200 episodes: 5000 transitions, the replay stays 4000 long: the tiny runs' program)
         args = ["train", *cli_args(dataclasses.replace(tiny_config, episodes=200)), "--out", str(out)]
@@ -291,8 +297,9 @@ def test_a_folder_being_written_is_refused_and_a_stale_lock_is_taken_over(tiny_c
         assert f"is being written by process {writer.pid}" in err and err.count("\n") == 1
         assert not (out / "config.json").exists() and (out / LOCK).exists()
     finally:
-        writer.kill()
-        writer.wait()
+        for process in (writer, stranger):
+            process.kill()
+            process.wait()
     # its process is gone: the lock is stale, taken over, and released at the end
     assert main(args) == 0
     assert (out / CHECKPOINT).exists() and not (out / LOCK).exists()
@@ -320,6 +327,10 @@ def test_faults_end_in_one_line_and_exit_2_and_leave_the_run_as_it_was(unbroken,
     metrics = (run / METRICS).read_text()
     (run / METRICS).write_text("seed,episodes,episode_reward\n0,100,oops\n")
     refused(["train", "--resume", str(run)], "metrics.csv' is damaged")
+    (run / METRICS).write_text("a,b\n1,2\n")  # another file's columns: a KeyError once
+    refused(["train", "--resume", str(run)], "metrics.csv' is damaged (no column 'seed')")
+    (run / METRICS).write_text(metrics.replace("wall_seconds", "seconds"))
+    refused(["train", "--resume", str(run)], "metrics.csv' is damaged (no column 'wall_seconds')")
     (run / METRICS).unlink()
     refused(["train", "--resume", str(run)], "metrics.csv' is missing or lacks rows of the 400 episodes")
     (run / METRICS).write_text(metrics)

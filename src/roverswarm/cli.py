@@ -47,9 +47,9 @@ class TrainCommand:
     preset: Literal["default", "reference", "swarm", "mappo", "ippo", "anysize", "anysize-ddpg"] = "default"
     """Starting values of every option: `default` (MADDPG tuned to learn), `reference` (the
     reference MADDPG code's), `swarm` (shared networks with rover ids, MATD3, nearest-first view; provisional,
-    see docs/results/swarm), `mappo` or `ippo` (PPO), `anysize` (MAPPO with entity networks on
-    paper-2..10: one policy for every swarm size), `anysize-ddpg` (the same from the swarm preset's
-    DDPG). Options given beside it change them."""
+    see docs/results/swarm), `mappo` or `ippo` (PPO), `anysize` (MAPPO over each rover's
+    nearest rovers, POIs and traps on paper-2..10: one policy for every swarm size),
+    `anysize-ddpg` (the same from the swarm preset's DDPG). Options given beside it change them."""
     config: TrainConfig = field(default_factory=TrainConfig)
     out: Path | None = None
     """Output folder (config.json, metrics.csv, tb/, checkpoint.npz, learning_curve.png)."""

@@ -138,8 +138,8 @@ def _representable(config: TrainConfig) -> None:
             continue
         if isinstance(value, float):
             require(math.isfinite(value), f"{flag} must be a finite number, got {value}")
-        elif name == "seed":
-            require(0 <= value < 2**32, f"{flag} must be in [0, 2^32), got {value}")
+        elif name == "seed":  # as limits.check_seed says it (which config cannot import: a cycle)
+            require(0 <= value < 2**32, f"{flag} must be an integer in [0, 2^32), got {value}")
         elif name == "hidden":
             require(
                 len(value) >= 1 and all(1 <= w <= 2**16 for w in value),

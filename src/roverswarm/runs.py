@@ -117,21 +117,33 @@ def _held(folder: Path, path: Path, owner: str) -> str:
 
 def _lock_owner(path: Path) -> str | None:
     """'PID on HOST' of a lock's live writer; None if the lock is stale (its process is gone
-    from this host) or vanished. A writer on another host is taken to be alive."""
+    from this host, or its number now belongs to a process that is no roverswarm: numbers are
+    reused, after a reboot too) or vanished. A writer on another host is taken to be alive."""
     try:
         pid, host = path.read_text().split()
+        number = int(pid)
     except FileNotFoundError:
         return None
     except ValueError:  # empty or garbage: nobody named (the flock says whether it is held)
         return None
-    if host == socket.gethostname():
-        try:
-            os.kill(int(pid), 0)
-        except ProcessLookupError:
-            return None
-        except PermissionError:  # alive, someone else's
-            pass
+    if host == socket.gethostname() and not _roverswarm_process(number):
+        return None
     return f"{pid} on {host}"
+
+
+def _roverswarm_process(pid: int) -> bool:
+    """Whether process ``pid`` of this host lives and runs roverswarm (its command line says so
+    where ``/proc`` shows it; elsewhere, living is enough)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, someone else's
+        pass
+    try:
+        return b"roverswarm" in Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:  # no /proc (macOS): living is enough; with /proc, the process just ended
+        return not Path("/proc/self").exists()
 
 
 def training_seconds(rows: list[dict[str, float]]) -> float:
@@ -195,15 +207,20 @@ COUNT_COLUMNS = ("seed", "episodes")
 """Integer columns of ``metrics.csv``; kept integers when a resumed run rewrites the file."""
 
 
+READ_COLUMNS = (*COUNT_COLUMNS, "wall_seconds")
+"""Columns of ``metrics.csv`` that resuming, extending and the sweeps' timings read."""
+
+
 def read_metrics(path: Path) -> list[dict[str, float]]:
     """The rows of a ``metrics.csv``: ``seed`` and ``episodes`` as ints, the rest as floats;
-    :class:`UserError` if the file is damaged."""
+    :class:`UserError` if the file is damaged (or lacks one of :data:`READ_COLUMNS`)."""
     try:
         with open_limited(path, "metrics.csv") as f:
-            return [
-                {k: int(float(v)) if k in COUNT_COLUMNS else float(v) for k, v in row.items()}
-                for row in csv.DictReader(f)
-            ]
+            reader = csv.DictReader(f)
+            missing = [c for c in READ_COLUMNS if c not in (reader.fieldnames or ())]
+            if missing:
+                raise ValueError(f"no column {missing[0]!r}")
+            return [{k: int(float(v)) if k in COUNT_COLUMNS else float(v) for k, v in row.items()} for row in reader]
     except UserError:  # past its size limit
         raise
     except (ValueError, TypeError, UnicodeDecodeError, csv.Error) as error:
