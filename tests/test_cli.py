@@ -58,6 +58,17 @@ def test_a_table_sizes_columns_by_terminal_cells(capsys, monkeypatch):
     assert "火星探査基地" in out and "1.500" in out, out
 
 
+def test_folder_names_that_look_like_markup_print_whole(tmp_path, capsys):
+    """rich read '[v1]' in a folder's name as markup and dropped it, and '[/x]' raised an
+    error after the work was done; printed as text, both stay whole."""
+    print_table("runs/a[v1]: 10 episodes", [{"policy": "ppo (a[/x], seed 0)", "reward": 1.0}], ("policy",))
+    out = tmp_path / "render[/x].gif"
+    assert main(["render", "--scenario", "paper-2", "--policy", "random", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "runs/a[v1]: 10 episodes" in printed and "a[/x]" in printed, printed
+    assert f"wrote {out}" in printed.replace("\n", ""), printed
+
+
 def test_render_writes_an_animation_and_its_last_frame(tmp_path):
     out = tmp_path / "ep.gif"
     assert main(["render", "--scenario", "paper-2", "--policy", "oracle", "--out", str(out), "--seed", "1"]) == 0
@@ -98,8 +109,18 @@ def test_render_drives_the_policy_behind_the_safety_layer_with_shield(tmp_path, 
                 "--scenario",
                 "paper-2",
             ],
-            "--scenario paper-2 and --mission: the mission file sets the layout and the number of rovers; "
-            "give one of them",
+            "--scenario paper-2 (given, or set by --preset) and --mission: the mission file sets the layout and "
+            "the number of rovers; give one of them",
+        ),
+        (
+            [
+                "train",
+                "--preset",
+                "anysize",
+                "--mission",
+                str(Path(__file__).parent.parent / "examples" / "mission.yaml"),
+            ],
+            "--scenario paper-2..10 (given, or set by --preset) and --mission: the mission file sets the layout",
         ),
         # numbers the program cannot represent or use, refused by class before anything runs
         (["train", "--actor-lr", "inf"], "--actor-lr must be a finite number, got inf"),

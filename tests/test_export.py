@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+import shutil
 import subprocess
 import sys
 import zlib
@@ -392,6 +393,26 @@ def test_refusals_are_one_line_and_exit_code_2(exported, tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and re.search(message, err[0]), err
         assert not (tmp_path / "out").exists()
+
+
+def test_an_export_that_cannot_write_every_file_changes_none(exported, tmp_path, capsys):
+    """Each file was renamed in place as it was written: a README.md that could not be written
+    left the other three files of another run's export beside the old README. Now every file
+    is written first and renamed only once all are: the folder keeps the first export whole."""
+    from roverswarm.cli import main
+
+    out = tmp_path / "out"
+    shutil.copytree(exported["mappo"][1], out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    (out / "README.md").unlink()
+    (out / "README.md").mkdir()  # the one file that cannot be written
+    assert main(["export", str(exported["ippo"][0]), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"cannot write '{out / 'README.md'}'" in err and "no file was changed" in err, err
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == {
+        name: data for name, data in before.items() if name != "README.md"
+    }
+    assert not list(out.glob("*.tmp"))
 
 
 def test_a_run_its_budget_ended_is_finished_and_exports(tmp_path):

@@ -188,7 +188,9 @@ def test_files_past_their_limit_are_refused_without_being_read(tiny_config, tmp_
     with open(sweep, "wb") as f:
         f.truncate(2 * 2**20)
     refused(["sweep", str(sweep), "--out", str(tmp_path / "out")], "has 2097152 bytes; at most 1048576", capsys)
-    write_csv(tmp_path / "metrics.csv", [{"seed": 0, "episodes": 100, "episode_reward": 1.0}] * 100)
+    write_csv(
+        tmp_path / "metrics.csv", [{"seed": 0, "episodes": 100, "episode_reward": 1.0, "wall_seconds": 1.0}] * 100
+    )
     assert len(read_metrics(tmp_path / "metrics.csv")) == 100
     monkeypatch.setitem(limits.FILE_LIMITS, "metrics.csv", 1000)
     with pytest.raises(UserError, match=r"metrics.csv '.*' has \d+ bytes; at most 1000"):

@@ -552,5 +552,5 @@ def test_default_jobs_follow_run_length_cpus_and_memory(base, tmp_path, monkeypa
     assert pool_module.default_jobs(long) == min(6, cpus)
     assert pool_module.default_jobs(long[:1]) == 1
     need = max(pool_module.run_memory(run.config) for run in long)
-    monkeypatch.setattr(pool_module, "physical_memory", lambda: int(need / 0.8) + 1)  # room for one run only
+    monkeypatch.setattr(pool_module, "memory_limit", lambda: int(need / 0.8) + 1)  # room for one run only
     assert pool_module.default_jobs(long) == 1

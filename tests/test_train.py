@@ -19,6 +19,7 @@ import jax
 import numpy as np
 import pytest
 
+import roverswarm.limits as limits
 import roverswarm.trainer as trainer_module
 from roverswarm.cli import main
 from roverswarm.config import TrainConfig, config_from_json, config_to_json, validate, with_options
@@ -325,7 +326,7 @@ def test_faults_end_in_one_line_and_exit_2_and_leave_the_run_as_it_was(unbroken,
             "output folder '/proc/roverswarm-run' cannot be written (the file system there makes no new files)",
         )
     metrics = (run / METRICS).read_text()
-    (run / METRICS).write_text("seed,episodes,episode_reward\n0,100,oops\n")
+    (run / METRICS).write_text("seed,episodes,episode_reward,wall_seconds\n0,100,oops,1\n")
     refused(["train", "--resume", str(run)], "metrics.csv' is damaged")
     (run / METRICS).write_text("a,b\n1,2\n")  # another file's columns: a KeyError once
     refused(["train", "--resume", str(run)], "metrics.csv' is damaged (no column 'seed')")
@@ -376,9 +377,9 @@ def test_a_replay_capped_at_the_runs_own_transitions_gives_the_numbers_of_the_fu
 
 
 def test_a_replay_larger_than_the_machine_is_refused_before_it_is_allocated(tiny_config, monkeypatch):
-    monkeypatch.setattr(trainer_module, "physical_memory", lambda: 2**20)  # a 1 MiB machine
+    monkeypatch.setattr(limits, "memory_limit", lambda: 2**24)  # a process allowed 16 MiB (the replay: 32 MB)
     config = with_options(tiny_config, {"episodes": 10_000, "buffer_size": 10**6})  # 250,000 transitions
-    with pytest.raises(UserError, match=r"the replay needs \d+\.\d GiB \(2 seeds x 250000 transitions x \d+ bytes\)"):
+    with pytest.raises(UserError, match=r"this run needs about .* GiB of it for the replay \(--buffer-size 1000000, "):
         train(config, progress=False)
 
 

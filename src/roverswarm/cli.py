@@ -87,7 +87,7 @@ def run_train(cmd: TrainCommand) -> None:
         result = train(resumed_config(cmd.config, saved), out=cmd.resume, resume=True)
     last = [r for r in result.metrics if r["episodes"] == result.metrics[-1]["episodes"]]
     mean = sum(r["episode_reward"] for r in last) / len(last)
-    Console().print(
+    _console().print(
         f"done: mean episode reward {mean:.2f} over the last {result.config.log_every} episodes"
         + (f"; results in {result.out}" if result.out else "")
     )
@@ -95,16 +95,23 @@ def run_train(cmd: TrainCommand) -> None:
 
 def run_reproduce(cmd: ReproduceCommand) -> None:
     report = reproduce(cmd.config)
-    Console().print(f"\ndone: {report} (with table1.md, table1.csv, final_policies.csv, fig8.png, fig9.png)")
+    _console().print(f"\ndone: {report} (with table1.md, table1.csv, final_policies.csv, fig8.png, fig9.png)")
 
 
 def run_sweep(cmd: SweepConfig) -> None:
     from roverswarm.experiments.sweep import sweep
 
     table = sweep(cmd)
-    Console().print(table.read_text(), markup=False, soft_wrap=True)
+    _console().print(table.read_text(), soft_wrap=True)
     written = [table, table.with_suffix(".csv"), table.with_suffix(".png")]
-    Console().print(f"wrote {', '.join(str(path) for path in written if path.exists())}")
+    _console().print(f"wrote {', '.join(str(path) for path in written if path.exists())}")
+
+
+def _console(**options) -> Console:
+    """A console that prints text as it is, not as rich markup: a folder named 'run[v1]' or
+    'a[/b]' is printed whole (as markup the first lost its '[v1]', the second raised an error
+    after the work was done)."""
+    return Console(markup=False, **options)
 
 
 def print_table(title: str, rows: list[dict[str, object]], left: tuple[str, ...]) -> None:
@@ -121,12 +128,12 @@ def print_table(title: str, rows: list[dict[str, object]], left: tuple[str, ...]
         table.add_column(header, justify="left" if column in left else "right", no_wrap=no_wrap, min_width=width)
     for i in range(len(rows)):
         table.add_row(*(values[i] for values in cells.values()))
-    console = Console()
+    console = _console()
     # rich narrows a table that does not fit below its columns' minimums, and then crops it:
     # rendered wider than the console, it is printed at its full width instead
     lines = Segment.split_lines(console.render(table, console.options))
     if max(map(Segment.get_line_length, lines)) > console.width:
-        console = Console(width=Measurement.get(console, console.options.update_width(10_000), table).maximum)
+        console = _console(width=Measurement.get(console, console.options.update_width(10_000), table).maximum)
     console.print(table)
 
 
@@ -144,7 +151,7 @@ def run_scenarios(cmd: ScenariosCommand) -> None:
     from roverswarm.env.scenarios import SIZE_RULE, scenario_table
 
     print_table("roverswarm scenarios", scenario_table(), ("name", "description"))
-    Console().print(SIZE_RULE)
+    _console().print(SIZE_RULE)
 
 
 def run_render(cmd: RenderConfig) -> None:
@@ -170,13 +177,13 @@ def run_render(cmd: RenderConfig) -> None:
         sets=f"one episode of {params.max_steps} steps",
     )
     png = render_episode(params, policy, cmd.out, cmd.seed, label=f"{where} {policy.name}")
-    Console().print(f"wrote {cmd.out} and {png}")
+    _console().print(f"wrote {cmd.out} and {png}")
 
 
 def run_mission(cmd: MissionConfig) -> None:
     from roverswarm import mission
 
-    action, console = cmd.action, Console()
+    action, console = cmd.action, _console()
     if isinstance(action, MissionRunConfig):
         result = mission.run_mission(
             action.mission,
@@ -189,7 +196,7 @@ def run_mission(cmd: MissionConfig) -> None:
             action.animation,
             action.shield,
         )
-        console.print(result.files["metrics.md"].read_text(), markup=False, soft_wrap=True)
+        console.print(result.files["metrics.md"].read_text(), soft_wrap=True)
         console.print(f"wrote {', '.join(str(p) for p in result.files.values())}")
     else:
         from roverswarm.stress import stress_mission
@@ -204,9 +211,7 @@ def run_mission(cmd: MissionConfig) -> None:
             action.shield,
             action.failures,
         )
-        console.print(
-            mission.markdown_table(list(rows[0]), [list(r.values()) for r in rows]), markup=False, soft_wrap=True
-        )
+        console.print(mission.markdown_table(list(rows[0]), [list(r.values()) for r in rows]), soft_wrap=True)
         console.print(f"wrote {action.out / 'stress.md'}, stress.csv and stress.png")
 
 
@@ -219,7 +224,7 @@ def run_export(cmd: ExportConfig) -> None:
     )
     layer = " with the safety layer" if result.meta["shield"] else ""
     behind = " (both behind the safety layer)" if result.meta["shield"] and result.difference is not None else ""
-    Console().print(f"wrote {cmd.out}{layer} ({', '.join(result.files)}); {checked}{behind}")
+    _console().print(f"wrote {cmd.out}{layer} ({', '.join(result.files)}); {checked}{behind}")
 
 
 COMMANDS: dict[str, tuple[type, Callable]] = {

@@ -155,8 +155,8 @@ def validate(config: TrainConfig) -> EnvParams:
     _representable(config)
     require(
         config.mission is None or config.scenario == DEFAULT_SCENARIO,
-        f"--scenario {config.scenario} and --mission: the mission file sets the layout and the number "
-        "of rovers; give one of them",
+        f"--scenario {config.scenario} (given, or set by --preset) and --mission: the mission file sets the "
+        "layout and the number of rovers; give one of them",
     )
     sizes = sizes_of(config)
     if sizes is not None:

@@ -110,7 +110,7 @@ def _progress(enabled: bool) -> Iterator[Callable[[str, int], None]]:
     if not (enabled and console.is_interactive):
         yield lambda what, total: None
         return
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    columns = (TextColumn("{task.description}", markup=False), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
     with Progress(*columns, console=console, transient=True) as bar:
         task, done = bar.add_task("evaluating"), itertools.count()
         yield lambda what, total: bar.update(task, description=what, total=total, completed=next(done), refresh=True)

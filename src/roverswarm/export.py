@@ -35,7 +35,7 @@ from roverswarm.errors import UserError, require
 from roverswarm.learners import learner_family, offpolicy
 from roverswarm.runs import CHECKPOINT, Run, budget_spent, checkpointed_rows, folder_lock, training_seconds
 from roverswarm.steering import FAILED_MARGIN, KEEP_OUT_MARGIN, SHIELD_STEPS, shield_actions
-from roverswarm.storage import atomic_write, trained_episodes
+from roverswarm.storage import atomic_write_files, trained_episodes
 
 CHECK_OBSERVATIONS = 256
 """Swarm observations of random layouts on which every export is checked against JAX."""
@@ -364,10 +364,7 @@ def export_run(run_folder: str | Path, out: str | Path, seed: int = 0, shield: b
         "README.md": readme(meta),
     }
     difference = check_model(run, seed, meta, model_bytes)
-    files = {}
+    files = {name: out / name for name in contents}
     with folder_lock(out):
-        for name, content in contents.items():
-            binary = isinstance(content, bytes)
-            atomic_write(out / name, lambda f, c=content: f.write(c), binary=binary)
-            files[name] = out / name
+        atomic_write_files({files[name]: content for name, content in contents.items()})
     return Export(files=files, meta=meta, difference=difference)

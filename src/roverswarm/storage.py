@@ -3,6 +3,7 @@ as plain arrays in an ``.npz`` file (never pickle), read back into a template of
 
 from __future__ import annotations
 
+import errno
 import os
 import zipfile
 from pathlib import Path
@@ -89,23 +90,46 @@ def save_checkpoint(path: Path, runner, replay: bool = True, config_json: str | 
     atomic_write(path, lambda f: np.savez(f, **arrays), binary=True)
 
 
+def _write_temporary(path: Path, write: Callable[[IO], None], binary: bool) -> Path:
+    """``write(file)`` into ``path``'s temporary file beside it, flushed to disk; returns it."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.unlink(missing_ok=True)  # a link left there is removed, not written through
+    with open(tmp, "wb" if binary else "w", newline=None if binary else "") as f:
+        write(f)
+        f.flush()
+        os.fsync(f.fileno())
+    return tmp
+
+
 def atomic_write(path: Path, write: Callable[[IO], None], binary: bool = False) -> None:
     """``write(file)`` into a temporary file beside ``path``, flushed to disk, then renamed over
     ``path``: a reader sees the old file or the new one, never half of one. If writing fails
     (a full disk, a read-only folder) the temporary file is removed, ``path`` is left as it
     was, and :class:`UserError` says so."""
-    tmp = path.with_name(path.name + ".tmp")
     try:
-        tmp.unlink(missing_ok=True)  # a link left there is removed, not written through
-        with open(tmp, "wb" if binary else "w", newline=None if binary else "") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        os.replace(_write_temporary(path, write, binary), path)
     except OSError as error:
-        tmp.unlink(missing_ok=True)
+        path.with_name(path.name + ".tmp").unlink(missing_ok=True)
         kept = "the previous version is kept" if path.exists() else "nothing was written"
         raise UserError(f"cannot write '{path}' ({error.strerror or error}); {kept}") from error
+
+
+def atomic_write_files(contents: dict[Path, str | bytes]) -> None:
+    """Each file of ``contents`` (text, or bytes) written as :func:`atomic_write` does, and
+    renamed over its path only once every one is written: if any fails, all are left as they
+    were (a folder holds one export or the other, never files of both)."""
+    try:
+        temporary = [_write_temporary(p, lambda f, c=c: f.write(c), isinstance(c, bytes)) for p, c in contents.items()]
+        blocked = next((p for p in contents if p.is_dir()), None)  # the one rename that fails in a writable folder
+        if blocked is not None:
+            raise IsADirectoryError(errno.EISDIR, "is a folder", str(blocked))
+    except OSError as error:
+        for path in contents:
+            path.with_name(path.name + ".tmp").unlink(missing_ok=True)
+        where = error.filename or "a file"
+        raise UserError(f"cannot write '{where}' ({error.strerror or error}); no file was changed") from error
+    for tmp, path in zip(temporary, contents):
+        os.replace(tmp, path)
 
 
 def read_arrays(path: Path, prefix: str = "") -> dict[str, np.ndarray]:

@@ -11,7 +11,6 @@ compiled once per family config: another seed, episode count or output folder re
 from __future__ import annotations
 
 import math
-import os
 import signal
 import time
 from dataclasses import dataclass
@@ -124,11 +123,6 @@ def checkpoint_due(config: TrainConfig, chunks_done: int, saved_at: float) -> bo
     return chunks_done % config.checkpoint_every == 0 or by_time
 
 
-def physical_memory() -> int:
-    """Bytes of physical memory of this machine."""
-    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-
-
 RUN_OVERHEAD = 2 * 2**30
 """Memory of a run besides its replay (compiled programs, networks, environment batches, the
 Python process): a reproduce --quick grid peaks near 0.9 GB, or 2.1 GB with --keep-programs."""
@@ -143,17 +137,6 @@ def replay_bytes(config: TrainConfig, params: EnvParams) -> tuple[int, int, int]
 def run_memory(config: TrainConfig) -> int:
     """Bytes a run of ``config`` needs: its replay plus :data:`RUN_OVERHEAD`."""
     return replay_bytes(config, validate(config))[0] + RUN_OVERHEAD
-
-
-def _check_replay_fits(config: TrainConfig, params: EnvParams) -> None:
-    """Refuse, before allocating it, a replay (every seed's) larger than 80% of the machine's memory."""
-    need, capacity, per_transition = replay_bytes(config, params)
-    have = physical_memory()
-    require(
-        need <= 0.8 * have,
-        f"the replay needs {need / 2**30:.1f} GiB ({config.seeds} seeds x {capacity} transitions x "
-        f"{per_transition} bytes) and this machine has {have / 2**30:.1f} GiB; lower --buffer-size or --seeds",
-    )
 
 
 def _minutes(seconds: float) -> str:
@@ -208,7 +191,6 @@ def _train(
     on_chunk: Callable[[int], None] | None,
 ) -> Result:
     family = learner_family(config.learner.algo)
-    _check_replay_fits(config, params)
     rows: list[dict[str, float]] = []
     if out is not None and resume:
         done, rows = _check_resumable(config, out)
@@ -236,7 +218,7 @@ def _train(
     first = int(runner.episodes) // config.log_every
     spent = training_seconds(rows)
     bar = Progress(
-        TextColumn("[bold]{task.description}"),
+        TextColumn("{task.description}", style="bold", markup=False),
         BarColumn(),
         MofNCompleteColumn(),
         TextColumn("episodes"),

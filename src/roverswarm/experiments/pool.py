@@ -15,7 +15,8 @@ from roverswarm.experiments.arms import SHORT_RUN, GridRun, episodes_done, statu
 from roverswarm.experiments.live import Summary
 from roverswarm.experiments.stopping import JobsStop, start_job
 from roverswarm.jaxcache import release_compiled_programs
-from roverswarm.trainer import physical_memory, run_memory, train
+from roverswarm.limits import memory_limit
+from roverswarm.trainer import run_memory, train
 
 
 def run_local(runs: list[GridRun], summary: Summary, keep_programs: bool = False) -> None:
@@ -33,11 +34,11 @@ def run_local(runs: list[GridRun], summary: Summary, keep_programs: bool = False
 
 def default_jobs(runs: list[GridRun]) -> int:
     """Runs to train side by side: one at a time for short runs (:data:`SHORT_RUN`), else at
-    most one per CPU, as many as fit in 80% of the memory
+    most one per CPU, as many as fit in 80% of the memory this process may use
     (:func:`~roverswarm.trainer.run_memory`), and no more than there are runs."""
     if not runs or max(run.config.episodes for run in runs) < SHORT_RUN:
         return 1
-    fit = int(0.8 * physical_memory() // max(run_memory(run.config) for run in runs))
+    fit = int(0.8 * memory_limit() // max(run_memory(run.config) for run in runs))
     return max(1, min(len(runs), len(usable_cpus()), fit))
 
 
