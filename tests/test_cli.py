@@ -171,9 +171,11 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_episode(tmp_path
     monkeypatch.setattr(roverswarm.animation, "rollout", lambda *a, **k: pytest.fail("the episode was run"))
     (tmp_path / "notes.txt").write_text("")
     (tmp_path / "folder.gif").mkdir()
+    (tmp_path / "still.png").mkdir()  # where the last frame of still.gif would go
     cases = {
         str(tmp_path / "notes.txt" / "ep.gif"): "is a file, not a folder",
         str(tmp_path / "folder.gif"): "is a folder; give a file ending in .gif or .mp4",
+        str(tmp_path / "still.gif"): f"its last frame's '{tmp_path / 'still.png'}' is a folder",
     }
     if Path("/proc/self").exists():  # a folder no file can be made in, even by root
         cases["/proc/ep.gif"] = "folder '/proc' cannot be written (the file system there makes no new files)"

@@ -278,6 +278,7 @@ def test_unknown_preset_names_the_choices():
         ("trap_radius", -0.1, "trap_radius must be positive"),
         ("num_rovers", 0, "num_rovers must be >= 1"),
         ("num_traps", -1, "num_traps must be >= 0"),
+        ("num_pois", 0, "num_pois must be >= 1"),  # nothing to observe: the views had no POI to match
         ("map_size", 0.0, "map_size must be positive"),
         ("trap_radius", 1e39, "trap_radius must be a finite number representable as float32"),
         ("collision_penalty", float("nan"), "collision_penalty must be a finite number"),

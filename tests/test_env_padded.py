@@ -313,6 +313,10 @@ def test_a_size_draw_power_draws_small_swarms_more_often(cap, expected):
         ("paper-2,2", "names each size once"),
         ("paper-x", "unknown scenario"),
         ("spread-3..5", "unknown scenario"),
+        pytest.param("paper-" + "9" * 5000, "every N must be in 2..64", id="5000 digits"),  # int() would raise
+        ("paper-0,3", r"2\.\.64, got 0, 3$"),  # a list, not a range
+        ("paper-02", "unknown scenario"),  # one spelling per scenario
+        ("paper-\u0663", "unknown scenario"),  # an Arabic-Indic 3: a digit to \\d, not to us
     ],
 )
 def test_bad_ranges_name_the_rule(name, pattern):
@@ -348,3 +352,7 @@ def test_pettingzoo_serves_any_paper_size():
     assert len(obs) == 16 and obs["rover_0"].shape == (4 + 6 * 16 - 2,)
     obs, rewards, *_ = env.step({a: env.action_space(a).sample() for a in env.agents})
     assert len(rewards) == 16 and np.abs(obs["rover_15"][2:4]).max() <= np.sqrt(1.6) + 0.5
+    # a padded layout (a batch's program for several sizes) is no single swarm: its empty slots
+    # were agents observed as zeros and rovers drawn inside traps
+    with pytest.raises(UserError, match="serves one swarm size"):
+        RoverSwarmEnv(params=sized(padded_scenario("paper-2..5"), 2))

@@ -286,7 +286,11 @@ def contact_forces(pos: jax.Array, params: EnvParams, exists: jax.Array | None =
     n = params.num_rovers
     delta = pos[:, None, :] - pos[None, :, :]  # [N, N, 2], rover a minus rover b
     eye = jnp.eye(n, dtype=bool)
-    dist = jnp.where(eye, 1.0, jnp.sqrt(jnp.sum(jnp.square(delta), axis=-1)))
+    squared = jnp.sum(jnp.square(delta), axis=-1)
+    # a rover and itself, or two at one spot (no direction to push; delta is 0 there): a distance
+    # of 1 instead of 0 inside the root, whose gradient at 0 is infinite and made every
+    # gradient through a later step NaN
+    dist = jnp.sqrt(jnp.where(eye | (squared == 0), 1.0, squared))
     k = params.contact_margin
     penetration = jnp.logaddexp(0.0, -(dist - 2 * params.rover_radius) / k) * k
     force = params.contact_force * delta / dist[..., None] * penetration[..., None]

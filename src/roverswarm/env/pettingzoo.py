@@ -16,7 +16,7 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from roverswarm.env.mars import ACTION_SIZE, EnvParams, observation_size, observe, reset, step_env
+from roverswarm.env.mars import ACTION_SIZE, EnvParams, is_padded, observation_size, observe, reset, step_env
 from roverswarm.env.render import FrameRenderer
 from roverswarm.env.scenarios import get_scenario
 from roverswarm.env.validation import validate_params
@@ -59,6 +59,11 @@ class RoverSwarmEnv(ParallelEnv):
         if render_mode not in (None, "rgb_array"):
             raise UserError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.params = validate_params(params) if params is not None else get_scenario(scenario)
+        if is_padded(self.params):  # its empty slots would be agents, drawn and observed as zeros
+            raise UserError(
+                "RoverSwarmEnv serves one swarm size: give params without active_rovers, active_pois or "
+                "active_traps (e.g. get_scenario('paper-4')), not a padded layout"
+            )
         self.render_mode = render_mode
         self.possible_agents = agent_names(self.params.num_rovers)
         self.agents: list[str] = []

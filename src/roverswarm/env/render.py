@@ -76,13 +76,16 @@ class FrameRenderer:
 
 
 def check_animation_path(path: Path) -> None:
-    """Raise :class:`UserError` unless ``path`` ends in .gif or .mp4 and can be written: not a
-    folder, and its folder (or the nearest one of its folders that exists: the others are made
-    when writing) one that takes a new file. Checked before an episode is drawn."""
+    """Raise :class:`UserError` unless ``path`` ends in .gif or .mp4 and can be written: neither
+    it nor its last frame's .png beside it a folder, and its folder (or the nearest one of its
+    folders that exists: the others are made when writing) one that takes a new file. Checked
+    before an episode is drawn."""
     path = Path(path)
     if path.suffix.lower() not in ANIMATION_SUFFIXES:
         raise UserError(f"--out must end in {' or '.join(ANIMATION_SUFFIXES)}, got '{path.name}'")
     require(not path.is_dir(), f"--out '{path}' is a folder; give a file ending in {' or '.join(ANIMATION_SUFFIXES)}")
+    still = path.with_suffix(".png")  # the last frame, written beside it
+    require(not still.is_dir(), f"--out '{path}': its last frame's '{still}' is a folder; choose another --out")
     folder = next(p for p in path.absolute().parents if p.exists())
     require(folder.is_dir(), f"--out '{path}': '{folder}' is a file, not a folder; choose another --out")
     try:

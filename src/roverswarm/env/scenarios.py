@@ -74,9 +74,10 @@ SCENARIOS: dict[str, Scenario] = {
 
 
 _NAMES = f"one of {', '.join(SCENARIOS)}, paper-N (N in 2..{MAX_ROVERS}), a range paper-A..B or a list paper-A,B,C"
-_RANGE = re.compile(r"paper-(\d+)\.\.(\d+)")
-_LIST = re.compile(r"paper-(\d+(?:,\d+)+)")
-_SINGLE = re.compile(r"paper-(\d+)")
+_N = r"(?:0|[1-9][0-9]*)"  # ASCII digits, no leading zero
+_RANGE = re.compile(rf"paper-({_N})\.\.({_N})")
+_LIST = re.compile(rf"paper-({_N}(?:,{_N})+)")
+_SINGLE = re.compile(rf"paper-({_N})")
 
 
 def scenario_sizes(name: str) -> tuple[int, ...]:
@@ -86,21 +87,24 @@ def scenario_sizes(name: str) -> tuple[int, ...]:
     if name in SCENARIOS:
         return (SCENARIOS[name].params.num_rovers,)
     ranged = _RANGE.fullmatch(name)
-    if match := ranged:
-        given = [int(match[1]), int(match[2])]
-        require(given[0] < given[1], f"scenario '{name}': a range paper-A..B needs A < B")
+    if ranged:
+        texts = [ranged[1], ranged[2]]
     elif match := _LIST.fullmatch(name):
-        given = [int(n) for n in match[1].split(",")]
-        require(len(set(given)) == len(given), f"scenario '{name}': a list paper-A,B,C names each size once")
+        texts = match[1].split(",")
     elif match := _SINGLE.fullmatch(name):
-        given = [int(match[1])]
+        texts = [match[1]]
     else:
         raise UserError(f"unknown scenario '{name}'; choose {_NAMES}")
-    low, high = min(given), max(given)  # checked before a range is built: paper-2..10**20 builds nothing
+    # checked before a range is built (paper-2..10**20 builds nothing), and before int() meets
+    # more digits than it converts
+    given = [int(t) if len(t) <= 3 else MAX_ROVERS + 1 for t in texts]
     require(
-        2 <= low and high <= MAX_ROVERS,
-        f"scenario '{name}': every N must be in 2..{MAX_ROVERS}, got {low}" + f"..{high}" * (high > low),
+        2 <= min(given) and max(given) <= MAX_ROVERS,
+        f"scenario '{name}': every N must be in 2..{MAX_ROVERS}, got {('..' if ranged else ', ').join(texts)}",
     )
+    require(not ranged or given[0] < given[1], f"scenario '{name}': a range paper-A..B needs A < B")
+    require(len(set(given)) == len(given), f"scenario '{name}': a list paper-A,B,C names each size once")
+    low, high = min(given), max(given)
     return tuple(range(low, high + 1)) if ranged else tuple(sorted(given))
 
 

@@ -28,9 +28,9 @@ def validate_params(params: EnvParams) -> EnvParams:
             f"{f.name} must be a finite number representable as float32 (|x| <= {_FLOAT32_MAX:.3g}), got {value}",
         )
     require(params.num_rovers >= 1, f"num_rovers must be >= 1, got {params.num_rovers}")
-    for name in ("num_pois", "num_traps"):
-        value = getattr(params, name)
-        require(value >= 0, f"{name} must be >= 0, got {value}")
+    # at least one POI: a swarm with nothing to observe has no task (and the views' matching no rows)
+    require(params.num_pois >= 1, f"num_pois must be >= 1, got {params.num_pois}")
+    require(params.num_traps >= 0, f"num_traps must be >= 0, got {params.num_traps}")
     require(params.max_steps >= 1, f"max_steps must be >= 1, got {params.max_steps}")
     for name in ("map_size", "rover_radius", "poi_radius", "dt", "mass"):
         value = float(getattr(params, name))
@@ -66,7 +66,8 @@ def validate_params(params: EnvParams) -> EnvParams:
             f"{name} must be in [{low}, {size}] (the layout's maximum), got {value}",
         )
     require(
-        params.fail_rate is None or bool(np.all((np.asarray(params.fail_rate) >= 0) & (np.asarray(params.fail_rate) <= 1))),
+        params.fail_rate is None
+        or bool(np.all((np.asarray(params.fail_rate) >= 0) & (np.asarray(params.fail_rate) <= 1))),
         f"fail_rate must be in [0, 1] (a probability per episode), got {params.fail_rate}",
     )
     require(
