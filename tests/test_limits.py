@@ -141,6 +141,25 @@ def test_the_learning_curve_is_not_written_through_a_symlink(tmp_path):
     assert victim.read_text() == "mine" and not (tmp_path / "learning_curve.png").is_symlink()
 
 
+def test_reports_and_figures_are_not_written_through_a_symlink(tmp_path):
+    """stress.md and stress.png (and Table I, report.md, the grid's and sweep's figures, which
+    write by the same two helpers) were opened at their path, writing through a link there."""
+    from pathlib import Path
+
+    from roverswarm.stress import stress_mission
+
+    victim = tmp_path / "victim.txt"
+    victim.write_text("mine")
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in ("stress.md", "stress.png"):
+        (out / name).symlink_to(victim)
+    mission = Path(__file__).parent.parent / "examples" / "mission.yaml"
+    stress_mission(mission, "random", out, episodes=4)
+    assert victim.read_text() == "mine"
+    assert not any((out / name).is_symlink() for name in ("stress.md", "stress.png"))
+
+
 @pytest.mark.parametrize(
     "argv, part",
     [
@@ -156,6 +175,22 @@ def test_memory_past_what_the_process_may_use_is_refused_before_it_is_allocated(
     """Estimated from shapes only: the test would not finish (or be killed) if any were allocated."""
     refused([*argv, "--out", str(tmp_path / "run")], part, capsys)
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("command", ["reproduce", "sweep"])
+def test_an_evaluation_too_large_is_refused_before_any_run_trains(command, tmp_path, capsys, monkeypatch):
+    """The grid's and the sweep's evaluation batch was checked after every run had trained, and
+    the message named --episodes; now before the first, naming --eval-episodes."""
+    import roverswarm.experiments.pool as pool
+
+    monkeypatch.setattr(pool, "train", lambda *a, **k: pytest.fail("a run trained"))
+    if command == "reproduce":
+        argv = ["reproduce", "--quick", "--scenarios", "paper-2", "--algorithms", "ddpg"]
+    else:
+        (tmp_path / "s.yaml").write_text("scenarios: [paper-2]\nepisodes: 2000\nsettings: {a: {}}\n")
+        argv = ["sweep", str(tmp_path / "s.yaml")]
+    big = str(2**30)
+    refused([*argv, "--eval-episodes", big, "--out", str(tmp_path / "out")], f"(--eval-episodes {big})", capsys)
 
 
 def test_evaluate_refuses_a_run_or_a_batch_too_large_before_reading_its_checkpoint(tiny_config, tmp_path, capsys):

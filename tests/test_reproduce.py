@@ -188,6 +188,9 @@ def test_two_optimizer_variants_against_one_maddpg_arm(base, finished, tmp_path,
     assert "'gamma' in 'bad:gamma=0.5' is not an optimizer option" in capsys.readouterr().err
     assert main(["reproduce", "--out", str(tmp_path), "--variants", "a:alpha=x"]) == 2
     assert "--variants: alpha in 'a:alpha=x'" in capsys.readouterr().err
+    # a value the config refuses names the arm (the variant) that set it
+    assert main(["reproduce", "--out", str(tmp_path / "b"), "--variants", "a:beta=2"]) == 2
+    assert "arm 'maddpg-optimizer-a' on paper-2: --beta must be in [0, 1], got 2.0" in capsys.readouterr().err
 
 
 def test_the_ensembles_script_compares_two_parts_unpaired_where_both_ran(finished, tmp_path, monkeypatch, capsys):
@@ -282,8 +285,18 @@ def test_an_interrupted_grid_finishes_only_the_missing_runs(base, finished, tmp_
     calls.clear()
     reproduce(small, base, live=False)  # nothing left: nothing trains
     assert calls == []
-    reproduce(tiny_grid(tmp_path, scenarios=("paper-2",), algorithms=("ddpg",), force=True), base, live=False)
+    forced = tiny_grid(tmp_path, scenarios=("paper-2",), algorithms=("ddpg",), force=True)
+    (tmp_path / "timing.csv").write_text("scenario,arm,chunk,seconds_per_1000\npaper-2,ddpg,0,999.0\n")
+    reproduce(forced, base, live=False)
     assert calls == [tmp_path / "runs" / "paper-2" / "ddpg"]
+    # the earlier grid's timings went with its runs (Table I took them for the new grid's; this
+    # tiny grid times nothing)
+    assert not (tmp_path / "timing.csv").exists()
+    # interrupted, a forced grid says to rerun without --force: with it, the runs it saved are deleted
+    monkeypatch.setattr(pool_module, "train", stops_after_two)
+    calls[:] = [None, None]
+    with pytest.raises(RunStopped, match=r"rerun without --force: with it every run starts again"):
+        reproduce(forced, base, live=False)
 
 
 def test_an_on_policy_arm_trains_from_its_preset_beside_the_papers_learners(base, finished, tmp_path):
@@ -309,7 +322,7 @@ def test_an_on_policy_arm_trains_from_its_preset_beside_the_papers_learners(base
 
 
 def test_a_folder_with_other_settings_is_not_overwritten(base, finished, capsys):
-    with pytest.raises(UserError, match="holds a run with other settings"):
+    with pytest.raises(UserError, match="holds a run with other settings .*; delete that folder"):
         reproduce(tiny_grid(finished, seed=5), base, live=False)
     assert main(["reproduce", "--out", str(finished), "--scenarios", "paper-11"]) == 2
     assert "unknown scenario 'paper-11'" in capsys.readouterr().err

@@ -208,6 +208,8 @@ def test_jobs_train_a_sweep_side_by_side_to_the_numbers_of_one_process(finished,
         ({"settings": {"a": {"mission": "m.yaml"}}}, "setting 'a' may not set 'mission' (it names the row)"),
         ({"settings": {"a": {"seeds": 3}}}, "setting 'a' may not set 'seeds' (it names the row)"),
         ({"scenarios": ["paper-2", "paper-2"], "settings": {"a": {}}}, "scenarios must each be given once"),
+        # a value the config refuses names the file and the setting it came from
+        ({"settings": {"a": {"beta": 2.0}}}, "bad.yaml': setting 'a' on paper-3: --beta must be in [0, 1]"),
     ],
 )
 def test_bad_sweep_files_are_one_line_and_exit_2(spec, message, tmp_path, capsys):
@@ -407,6 +409,7 @@ def test_a_sweep_on_ray_stops_on_a_signal_resumes_and_retries_a_killed_worker(fi
 def test_a_ray_sweep_sends_nothing_while_a_run_folder_is_being_written(finished, tmp_path, capsys, monkeypatch):
     import socket
     import subprocess
+    import sys
 
     from roverswarm.experiments import remote
 
@@ -414,7 +417,7 @@ def test_a_ray_sweep_sends_nothing_while_a_run_folder_is_being_written(finished,
     config, _ = finished
     run = tmp_path / "out" / "runs" / "paper-2" / "plain"
     run.mkdir(parents=True)
-    writer = subprocess.Popen(["sleep", "60"])  # a live process holds the run's folder
+    writer = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])  # a live writer holds the folder
     try:
         (run / ".lock").write_text(f"{writer.pid} {socket.gethostname()}")
         with pytest.raises(UserError, match=f"run 'paper-2 plain': '{run}' is being written by process {writer.pid}"):

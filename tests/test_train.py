@@ -282,11 +282,11 @@ def test_a_folder_being_written_is_refused_and_a_stale_lock_is_taken_over(tiny_c
     out = tmp_path / "run"
     out.mkdir()
     (out / "notes.txt").write_text("mine")
-    # a live roverswarm that holds no flock (an older version) holds the folder
-    writer = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "roverswarm", "train"])
+    # a live Python process that holds no flock (perhaps an older roverswarm) holds the folder
+    writer = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
     stranger = subprocess.Popen(["sleep", "60"])
     try:
-        # a lock naming a live process that is no roverswarm (its number reused) is stale
+        # a lock naming a live process that is not Python (its number reused) is stale
         (out / LOCK).write_text(f"{stranger.pid} {socket.gethostname()}")
         with folder_lock(out):
             assert (out / LOCK).read_text() == f"{os.getpid()} {socket.gethostname()}"

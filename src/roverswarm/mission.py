@@ -28,6 +28,7 @@ from roverswarm.limits import check_seed
 from roverswarm.policies import Policy
 from roverswarm.rollout import MissionStats, Rollout, rollout
 from roverswarm.runs import check_not_run, folder_lock, write_csv
+from roverswarm.storage import save_figure, write_text
 
 
 @dataclass(frozen=True)
@@ -275,7 +276,7 @@ def _routes_png(
         ax.annotate(
             f"start {i}", tuple(data.rover_pos[0, 0, i]), xytext=(4, -10), textcoords="offset points", fontsize=7
         )
-    renderer.figure.savefig(path)
+    save_figure(renderer.figure, path)
 
 
 def run_mission(
@@ -330,7 +331,7 @@ def run_mission(
         )
         write_rows(trajectory, files["trajectories.csv"], TRAJECTORY_COLUMNS)
         write_rows(_metrics_rows(stats, mission), files["metrics.csv"])
-        files["metrics.md"].write_text(mission_report(stats, mission, policy.name, fail_step))
+        write_text(files["metrics.md"], mission_report(stats, mission, policy.name, fail_step))
         title = f"{mission.name}: {policy.name}"
         _routes_png(data, mission, stats, fail_step, files["routes.png"], title)
         save_animation(episode_frames(data, mission.params, 0, title).frames, files[f"mission.{animation}"])

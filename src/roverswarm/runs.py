@@ -27,7 +27,7 @@ from roverswarm.learners import learner_family
 from roverswarm.limits import batch_part, check_memory, networks_part, open_limited, read_config
 from roverswarm.metrics import EPISODE_METRICS, reduce_metric
 from roverswarm.policies import REFERENCE_POLICIES, Policy, mixed_policy, shielded, trained_policy
-from roverswarm.storage import atomic_write, read_arrays, restore, trained_episodes
+from roverswarm.storage import atomic_write, read_arrays, restore, save_figure, trained_episodes
 
 CHECKPOINT = "checkpoint.npz"
 CONFIG = "config.json"
@@ -117,7 +117,7 @@ def _held(folder: Path, path: Path, owner: str) -> str:
 
 def _lock_owner(path: Path) -> str | None:
     """'PID on HOST' of a lock's live writer; None if the lock is stale (its process is gone
-    from this host, or its number now belongs to a process that is no roverswarm: numbers are
+    from this host, or its number now belongs to a program that is not Python: numbers are
     reused, after a reboot too) or vanished. A writer on another host is taken to be alive."""
     try:
         pid, host = path.read_text().split()
@@ -132,8 +132,8 @@ def _lock_owner(path: Path) -> str | None:
 
 
 def _roverswarm_process(pid: int) -> bool:
-    """Whether process ``pid`` of this host lives and runs roverswarm (its command line says so
-    where ``/proc`` shows it; elsewhere, living is enough)."""
+    """Whether process ``pid`` of this host lives and may run roverswarm: its command line names
+    Python or roverswarm where ``/proc`` shows it (elsewhere, living is enough)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -141,7 +141,8 @@ def _roverswarm_process(pid: int) -> bool:
     except PermissionError:  # alive, someone else's
         pass
     try:
-        return b"roverswarm" in Path(f"/proc/{pid}/cmdline").read_bytes()
+        command = Path(f"/proc/{pid}/cmdline").read_bytes()
+        return b"python" in command or b"roverswarm" in command
     except OSError:  # no /proc (macOS): living is enough; with /proc, the process just ended
         return not Path("/proc/self").exists()
 
@@ -249,7 +250,7 @@ def plot_learning_curve(rows: list[dict[str, float]], path: Path, title: str) ->
     ax.set_title(title)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    atomic_write(path, lambda f: fig.savefig(f, format="png"), binary=True)  # never through a symlink at path
+    save_figure(fig, path)
 
 
 SubPolicies = Literal["random", "each"]

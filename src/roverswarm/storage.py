@@ -114,6 +114,16 @@ def atomic_write(path: Path, write: Callable[[IO], None], binary: bool = False) 
         raise UserError(f"cannot write '{path}' ({error.strerror or error}); {kept}") from error
 
 
+def write_text(path: Path, text: str) -> None:
+    """``text`` into ``path`` by :func:`atomic_write`: never half a file, never through a symlink."""
+    atomic_write(path, lambda f: f.write(text))
+
+
+def save_figure(figure, path: Path) -> None:
+    """A matplotlib ``figure`` into ``path`` (its suffix the format) by :func:`atomic_write`."""
+    atomic_write(path, lambda f: figure.savefig(f, format=path.suffix[1:]), binary=True)
+
+
 def atomic_write_files(contents: dict[Path, str | bytes]) -> None:
     """Each file of ``contents`` (text, or bytes) written as :func:`atomic_write` does, and
     renamed over its path only once every one is written: if any fails, all are left as they

@@ -23,6 +23,7 @@ from roverswarm.mission import load_policy, markdown_table, write_rows
 from roverswarm.policies import ORACLE, Policy
 from roverswarm.rollout import MissionStats, rollout
 from roverswarm.runs import check_not_run, folder_lock
+from roverswarm.storage import save_figure, write_text
 
 
 def check_failures(failures: int, num_rovers: int) -> None:
@@ -107,7 +108,7 @@ def _stress_png(curves: dict, rows: list[dict[str, object]], mission: Mission, f
     ax.set_title(f"Mission '{mission.name}': redundancy under {under}")
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.15), ncol=2)
     figure.tight_layout()
-    figure.savefig(path)
+    save_figure(figure, path)
 
 
 def stress_mission(
@@ -156,12 +157,13 @@ def stress_mission(
         ]
         who = "one rover, drawn uniformly, stops" if failures == 1 else f"{failures} rovers, drawn uniformly, stop"
         each = "" if failures == 1 else ", each"
-        (out / "stress.md").write_text(
+        write_text(
+            out / "stress.md",
             f"# Mission '{mission.name}': {condition(failures)}\n\n{episodes} episodes per row, seed {seed}. "
             f"In the failure rows {who} for good{each} at a step drawn uniformly before the "
             "policy's own time to observe all POIs in that episode without failure (before the episode's end if it "
             "never does): a later failure would change nothing. Time to observe all is the mean over successful "
-            "episodes.\n\n" + markdown_table(header, body)
+            "episodes.\n\n" + markdown_table(header, body),
         )
         _stress_png(curves, rows, mission, failures, out / "stress.png")
     return rows

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Literal, get_args
 
-from roverswarm.config import TrainConfig, resumed_config, with_options
+from roverswarm.config import TrainConfig, resumed_config, validate, with_options
 from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
 from roverswarm.limits import read_config
@@ -22,7 +22,9 @@ from roverswarm.runs import (
     CHECKPOINT,
     CONFIG,
     METRICS,
+    Run,
     budget_spent,
+    check_rollout_memory,
     checkpointed_rows,
     read_metrics,
     training_seconds,
@@ -294,7 +296,7 @@ def status(run: GridRun) -> Literal["done", "partial", "new"]:
     has trained the episodes asked (or spent the budget), as ``train --resume`` would extend it.
 
     A folder holding a run of other settings, or of more episodes, is an error (the user
-    chooses: --force or another --out), never silently overwritten."""
+    chooses: delete it, reproduce --force, or another --out), never silently overwritten."""
     if not (run.folder / CONFIG).exists():
         return "new"
     saved = read_config(run.folder / CONFIG)
@@ -306,8 +308,8 @@ def status(run: GridRun) -> Literal["done", "partial", "new"]:
         reason = str(e).removeprefix("--resume: ")
     if reason:
         raise UserError(
-            f"'{run.folder}' holds a run with other settings ({reason}); rerun with --force to replace it, "
-            "or choose another --out"
+            f"'{run.folder}' holds a run with other settings ({reason}); delete that folder (reproduce --force "
+            "deletes every run of its grid; sweep has no --force) or choose another --out"
         )
     if not (run.folder / CHECKPOINT).exists():
         return "new"
@@ -326,6 +328,16 @@ SHORT_RUN = 5000
 """Episodes per seed below which runs train one after another: start-up and compilation
 dominate such runs, and side by side they finished no sooner (benchmarks/reproduce_jobs.py:
 the quick grid 0.94x with two jobs at 2000 episodes, 1.40x at 10,000)."""
+
+
+def check_evaluations(runs: list[GridRun], episodes: int) -> None:
+    """Refuse, before any run trains, an evaluation of ``episodes`` episodes per policy that
+    will not fit in memory once the runs are trained (:func:`~roverswarm.runs.check_rollout_memory`,
+    as ``evaluate`` checks it then: an error after all the training, naming --episodes)."""
+    for run in runs:
+        params = validate(run.config)
+        sets = f"--eval-episodes {episodes}"
+        check_rollout_memory(Run.of(run.config, None), [params], episodes, sets, f"evaluating run '{run.name}'")
 
 
 def check_jobs(jobs: int | None) -> None:

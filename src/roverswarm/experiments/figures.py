@@ -9,6 +9,7 @@ import numpy as np
 
 from roverswarm.experiments.results import RunResult, arm_order, label
 from roverswarm.experiments.significance import mean_interval
+from roverswarm.storage import save_figure
 
 
 def _figure(width: float, height: float, panels: tuple[int, int]):
@@ -57,7 +58,7 @@ def figure8(results: list[RunResult], path: Path) -> None:
         ax.set_ylabel(ylabel)
         ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path)
+    save_figure(fig, path)
 
 
 def figure9(results: list[RunResult], path: Path) -> None:
@@ -80,4 +81,4 @@ def figure9(results: list[RunResult], path: Path) -> None:
     for j in range(len(sizes), rows * cols):
         axes[j // cols][j % cols].set_visible(False)
     fig.tight_layout()
-    fig.savefig(path)
+    save_figure(fig, path)

@@ -18,7 +18,8 @@ from rich.console import Console
 from rich.live import Live
 
 from roverswarm.config import TrainConfig, validate
-from roverswarm.experiments.arms import GridRun, ReproduceConfig, plan, status
+from roverswarm.errors import RunStopped, UserError
+from roverswarm.experiments.arms import GridRun, ReproduceConfig, check_evaluations, plan, status
 from roverswarm.experiments.live import Summary
 from roverswarm.experiments.pool import default_jobs, train_runs
 from roverswarm.experiments.remote import run_ray
@@ -29,7 +30,12 @@ def run_grid(config: ReproduceConfig, base: TrainConfig | None = None, live: boo
     """Train every run of the grid that is not finished yet; returns all runs of the grid."""
     runs = plan(config, base)
     for run in runs:  # every run checked, its memory too, before the first trains
-        check_training_memory(run.config, validate(run.config))
+        try:  # its messages name the command line's flags: say which arm (a --variants one too) set it
+            params = validate(run.config)
+        except UserError as error:
+            raise UserError(f"arm '{run.algorithm}' on {run.scenario}: {error}") from None
+        check_training_memory(run.config, params)
+    check_evaluations(runs, config.grid_eval_episodes)
     if config.force:
         for run in runs:
             if run.folder.exists():
@@ -42,9 +48,15 @@ def run_grid(config: ReproduceConfig, base: TrainConfig | None = None, live: boo
     else:
         jobs = config.jobs or default_jobs(todo)
         execute = lambda: train_runs(todo, summary, jobs, config.keep_programs)  # noqa: E731
-    if live:
-        with Live(summary, console=Console(), refresh_per_second=2):
+    try:
+        if live:
+            with Live(summary, console=Console(), refresh_per_second=2):
+                execute()
+        else:
             execute()
-    else:
-        execute()
+    except RunStopped as stopped:
+        if not config.force:
+            raise
+        # the same command again would delete what the runs saved: --force starts every run anew
+        raise RunStopped(f"{stopped} (rerun without --force: with it every run starts again)") from None
     return runs

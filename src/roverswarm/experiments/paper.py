@@ -23,6 +23,7 @@ from roverswarm.experiments.timing import chunk_seconds
 from roverswarm.jaxcache import release_compiled_programs
 from roverswarm.learners import learner_family
 from roverswarm.runs import folder_lock, write_csv
+from roverswarm.storage import write_text
 
 
 def time_arms(config: ReproduceConfig, runs: list[GridRun]) -> dict[tuple[str, str], np.ndarray]:
@@ -82,6 +83,8 @@ def reproduce(config: ReproduceConfig, base: TrainConfig | None = None, live: bo
 
 def _reproduce(config: ReproduceConfig, base: TrainConfig | None, live: bool) -> Path:
     start = time.perf_counter()
+    if config.force:  # timed with the grid's earlier settings, which --force replaces
+        (config.out / TIMING).unlink(missing_ok=True)
     runs = run_grid(config, base, live=live)
     timed = time_arms(config, runs)
     results = [load(run, timed) for run in runs]
@@ -90,7 +93,7 @@ def _reproduce(config: ReproduceConfig, base: TrainConfig | None, live: bool) ->
     config.out.mkdir(parents=True, exist_ok=True)
     write_csv(config.out / "table1.csv", rows, TABLE1_COLUMNS)
     write_csv(config.out / "final_policies.csv", final)
-    (config.out / "table1.md").write_text(table1_markdown(rows))
+    write_text(config.out / "table1.md", table1_markdown(rows))
     figure8(results, config.out / "fig8.png")
     figure9(results, config.out / "fig9.png")
     return write_report(config, results, rows, final, time.perf_counter() - start)

@@ -16,6 +16,7 @@ from roverswarm.experiments.arms import OPTIMIZERS, ReproduceConfig, optimizer_o
 from roverswarm.experiments.results import LABELS, LAST_WINDOW, RunResult, arm_order, label, pooled_rows
 from roverswarm.experiments.significance import mean_interval, relative_change
 from roverswarm.runs import markdown_table
+from roverswarm.storage import write_text
 
 
 def _fmt(x: float, digits: int = 2, suffix: str = "") -> str:
@@ -257,5 +258,5 @@ and oracle (score 1) policies; normalised score `(R - R_random) / (R_oracle - R_
 {chr(10).join(verdicts(results, rows))}
 """
     path = config.out / "report.md"
-    path.write_text(text)
+    write_text(path, text)
     return path

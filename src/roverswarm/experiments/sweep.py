@@ -46,7 +46,7 @@ from rich.live import Live
 from roverswarm.config import validate, with_options
 from roverswarm.env.scenarios import scenario_sizes
 from roverswarm.errors import UserError, require
-from roverswarm.experiments.arms import Backend, GridRun, check_backend, episodes_done, status
+from roverswarm.experiments.arms import Backend, GridRun, check_backend, check_evaluations, episodes_done, status
 from roverswarm.experiments.live import Summary
 from roverswarm.experiments.pool import default_jobs, train_runs
 from roverswarm.experiments.remote import run_ray
@@ -54,7 +54,7 @@ from roverswarm.limits import check_memory, open_limited, read_limited, safe_nam
 from roverswarm.parsing import load_text
 from roverswarm.presets import PRESETS
 from roverswarm.runs import METRICS, folder_lock, markdown_table, read_metrics, training_seconds, write_csv
-from roverswarm.storage import atomic_write
+from roverswarm.storage import atomic_write, save_figure
 
 EVALUATION = "evaluation.csv"
 
@@ -140,7 +140,10 @@ def load_sweep(path: Path, out: Path) -> list[GridRun]:
             )
             base = with_options(PRESETS[start], common, f"sweep file '{path}'")
             config = with_options(dataclasses.replace(base, scenario=scenario), options, f"setting '{name}'")
-            params = validate(config)
+            try:  # its messages name the command line's flags: say where the value came from
+                params = validate(config)
+            except UserError as error:
+                raise UserError(f"sweep file '{path}': setting '{name}' on {scenario}: {error}") from None
             check_memory(training_parts(config, params), f"setting '{name}' on {scenario}")
             runs.append(GridRun(scenario, name, config, Path(out) / "runs" / scenario / name))
     return runs
@@ -271,7 +274,7 @@ def figure(rows: list[dict[str, object]], path: Path, episodes: int = 1000) -> N
     clock.set_title("training wall time per run", fontsize=10)
     clock.set_ylim(bottom=0)
     fig.tight_layout()
-    fig.savefig(path)
+    save_figure(fig, path)
 
 
 def read_table(path: Path) -> list[dict[str, object]]:
@@ -304,6 +307,7 @@ def sweep(config: SweepConfig, live: bool = True) -> Path:
     require(config.eval_episodes >= 1, f"--eval-episodes must be >= 1, got {config.eval_episodes}")
     check_backend(config)
     runs = load_sweep(config.file, config.out)
+    check_evaluations(runs, config.eval_episodes)
     done = {run.name for run in runs if status(run) == "done"}
     todo = [run for run in runs if run.name not in done]
     summary = Summary(runs, done)
