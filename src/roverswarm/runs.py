@@ -126,12 +126,12 @@ def _lock_owner(path: Path) -> str | None:
         return None
     except ValueError:  # empty or garbage: nobody named (the flock says whether it is held)
         return None
-    if host == socket.gethostname() and not _roverswarm_process(number):
+    if host == socket.gethostname() and not _may_be_writer(number):
         return None
     return f"{pid} on {host}"
 
 
-def _roverswarm_process(pid: int) -> bool:
+def _may_be_writer(pid: int) -> bool:
     """Whether process ``pid`` of this host lives and may run roverswarm: its command line names
     Python or roverswarm where ``/proc`` shows it (elsewhere, living is enough)."""
     try:
