@@ -16,9 +16,9 @@ A mission file is YAML or JSON (see ``examples/mission.yaml``)::
 
 Every mistake is one :class:`~roverswarm.errors.UserError` that names the entry: a missing
 or unknown field, a POI, trap or start outside the map, a non-positive radius, a start that
-overlaps a trap or another rover, a release zone mostly covered by craters. The environment itself is unchanged: a mission is
-:class:`~roverswarm.env.mars.EnvParams` with ``fixed_pois``, ``fixed_traps`` and
-``fixed_starts`` or ``start_zone`` set.
+overlaps a trap or another rover, a release zone mostly covered by craters. The environment
+itself is unchanged: a mission is :class:`~roverswarm.env.mars.EnvParams` with
+``fixed_pois``, ``fixed_traps`` and ``fixed_starts`` or ``start_zone`` set.
 """
 
 from __future__ import annotations
