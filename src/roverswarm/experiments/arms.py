@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Literal, get_args
 
-from roverswarm.config import TrainConfig, resumed_config, validate, with_options
+from roverswarm.config import TrainConfig, resumed_config, with_options
 from roverswarm.env.scenarios import SCENARIOS
 from roverswarm.errors import UserError, require
 from roverswarm.limits import read_config
@@ -335,9 +335,9 @@ def check_evaluations(runs: list[GridRun], episodes: int) -> None:
     will not fit in memory once the runs are trained (:func:`~roverswarm.runs.check_rollout_memory`,
     as ``evaluate`` checks it then: an error after all the training, naming --episodes)."""
     for run in runs:
-        params = validate(run.config)
+        handle = Run.of(run.config, None)  # its config and environment (validated), no networks yet
         sets = f"--eval-episodes {episodes}"
-        check_rollout_memory(Run.of(run.config, None), [params], episodes, sets, f"evaluating run '{run.name}'")
+        check_rollout_memory(handle, [handle.params], episodes, sets, f"evaluating run '{run.name}'")
 
 
 def check_jobs(jobs: int | None) -> None:
