@@ -144,6 +144,10 @@ def test_render_drives_the_policy_behind_the_safety_layer_with_shield(tmp_path, 
             "--entity-dim must be >= 1 (each token's width), got 0",
         ),
         (["reproduce", "--algorithms"], "--algorithms: give at least one of ddpg, maddpg"),
+        # an unset shell variable: not the current folder
+        (["train", "--out", ""], "--out was given an empty value, most likely an unset shell variable"),
+        (["train", "--out="], "--out was given an empty value, most likely an unset shell variable"),
+        (["evaluate", " "], "an empty argument after evaluate, most likely an unset shell variable"),
         (
             ["reproduce", "--variants", "a:alpha=1,alpha=2"],
             "--variants: 'alpha' is given twice in 'a:alpha=1,alpha=2'",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
 
 import jax
 import numpy as np
@@ -15,7 +16,7 @@ from roverswarm.env import get_scenario
 from roverswarm.env.mars import observation_size
 from roverswarm.oracle import assign_pois
 from roverswarm.policies import ORACLE, RANDOM, trained_policy
-from roverswarm.rollout import rollout
+from roverswarm.rollout import normalized_score, rollout
 
 
 def test_hungarian_assignment_matches_brute_force():
@@ -49,6 +50,12 @@ def test_oracle_beats_random_by_a_wide_margin_with_few_trap_contacts(scenario):
     assert oracle["trap_contacts"] < 0.2 * random["trap_contacts"], (oracle, random)
     rover_steps = params.num_rovers * params.max_steps
     assert oracle["trap_contacts"] / rover_steps < 0.02, oracle
+
+
+def test_the_normalised_score_places_random_at_0_the_oracle_at_1_and_is_undefined_where_they_tie():
+    assert normalized_score(-30.0, -50.0, -10.0) == 0.5
+    assert normalized_score(-50.0, -50.0, -10.0) == 0.0 and normalized_score(-5.0, -50.0, -10.0) == 1.125
+    assert math.isnan(normalized_score(-7.0, -10.0, -10.0))  # no ZeroDivisionError after the rollouts
 
 
 def test_rollouts_are_reproducible():

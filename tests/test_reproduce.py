@@ -453,6 +453,34 @@ def test_the_relative_change_interval_covers_the_truth_95_percent_of_the_time():
     assert 0.92 <= hits / trials <= 0.985
 
 
+def test_the_live_table_shows_a_ray_task_running_once_it_reported_and_done_once_it_ended(base, tmp_path):
+    """With 2 CPUs and 3 tasks sent, the third waits on the cluster: queued until its task
+    reports to the board, and a run that ended is not taken back to running by a late report."""
+    from rich.console import Console
+
+    from roverswarm.experiments.live import Summary
+    from roverswarm.experiments.remote import Board, follow
+
+    runs = plan(tiny_grid(tmp_path, scenarios=("paper-2",)), base)
+    summary, board = Summary(runs, set()), Board()
+    follow(summary, runs, board.reports())
+    assert summary.running == {}
+    assert board.report(runs[0].name, 0) is False and board.report(runs[1].name, 0) is False
+    board.report(runs[0].name, 200)
+    follow(summary, runs, board.reports())
+    assert summary.running == {runs[0].name: 200, runs[1].name: 0}
+    summary.finish(runs[0])
+    follow(summary, runs[1:], board.reports())  # runs[0] no longer pending
+    console = Console(width=120, record=True)
+    console.print(summary)
+    text = console.export_text()
+    assert "1 done, 1 running, 1 left" in text
+    cells = [[c.strip() for c in line.split("│")[1:3]] for line in text.splitlines() if line.startswith("│ paper-2")]
+    assert dict(cells) == {runs[0].name: "done", runs[1].name: "running", runs[2].name: "queued"}, text
+    board.ask()
+    assert board.report(runs[2].name, 0) is True  # told to stop as it starts
+
+
 def _reproduce_on_ray(config, base) -> list[int]:
     """Run the grid on a local Ray cluster while a worker is killed; returns the killed pids."""
     with local_ray(), killing_a_worker(after=1.0) as killed:  # let it get going first

@@ -291,10 +291,26 @@ def _value_error(text: str) -> str | None:
     return f"{option}: {message}"
 
 
+def _check_not_empty(argv: list[str]) -> None:
+    """Refuses an empty argument (``--out ""``, ``--out=``; most often an unset shell variable),
+    which tyro would take as the current folder or an empty name."""
+    for before, arg in zip(["roverswarm", *argv], argv):
+        if arg.startswith("--") and arg.endswith("="):
+            what = f"{arg[:-1]} was given an empty value"
+        elif not arg.strip():
+            what = (
+                f"{before} was given an empty value" if before.startswith("--") else f"an empty argument after {before}"
+            )
+        else:
+            continue
+        raise UserError(f"{what}, most likely an unset shell variable: give the value itself")
+
+
 def _parse(commands: tuple, argv: list[str]):
     """tyro's parse of ``argv``. A value it cannot convert is a :class:`UserError` (one line
-    and exit code 2, as every other bad value); its other messages (help, unknown options) are
-    its own."""
+    and exit code 2, as every other bad value); so is an empty one; its other messages (help,
+    unknown options) are its own."""
+    _check_not_empty(argv)
     captured = io.StringIO()
     try:
         with contextlib.redirect_stderr(captured):

@@ -183,5 +183,7 @@ class MissionStats:
 
 
 def normalized_score(reward: float, random_reward: float, oracle_reward: float) -> float:
-    """``(R - R_random) / (R_oracle - R_random)``: 0 is random, 1 is the oracle."""
-    return (reward - random_reward) / (oracle_reward - random_reward)
+    """``(R - R_random) / (R_oracle - R_random)``: 0 is random, 1 is the oracle; NaN where the
+    oracle earns no more than random does not tell them apart (the same reward on every layout)."""
+    span = oracle_reward - random_reward
+    return (reward - random_reward) / span if span != 0 else float("nan")

@@ -8,9 +8,10 @@ training here does, so a second writer is refused.
 
 Ctrl-C or SIGTERM (:class:`~roverswarm.experiments.stopping.JobsStop`: the first asks, later
 ones are ignored until the tasks have ended) sets a flag the tasks read after every chunk
-(:class:`StopFlag`, a Ray actor): each running task stops at its next chunk with a checkpoint
+(on :class:`Board`, a Ray actor): each running task stops at its next chunk with a checkpoint
 and returns its files, a task not started yet returns nothing, and rerunning the command
-resumes every run from what came back.
+resumes every run from what came back. The tasks also report their episodes there after each
+chunk, so the live table shows a task waiting for a free CPU as queued, not running.
 """
 
 from __future__ import annotations
@@ -33,17 +34,24 @@ Files = dict[str, bytes]
 """A run folder's files by their path inside it."""
 
 
-class StopFlag:
-    """A Ray actor: whether the command asked its tasks to stop."""
+class Board:
+    """A Ray actor between the command and its tasks: whether the command asked them to stop,
+    and how many episodes each task that started has trained."""
 
     def __init__(self):
-        self.value = False
+        self.stop = False
+        self.episodes: dict[str, int] = {}
 
     def ask(self) -> None:
-        self.value = True
+        self.stop = True
 
-    def asked(self) -> bool:
-        return self.value
+    def report(self, name: str, episodes: int) -> bool:
+        """Task ``name`` has trained ``episodes`` (per seed); returns whether to stop."""
+        self.episodes[name] = episodes
+        return self.stop
+
+    def reports(self) -> dict[str, int]:
+        return dict(self.episodes)
 
 
 def read_files(folder: Path) -> Files:
@@ -64,16 +72,19 @@ def write_files(folder: Path, files: Files) -> None:
         atomic_write(path, lambda f, content=files[name]: f.write(content), binary=True)
 
 
-def train_remote(config_json: str, files: Files | None, stop) -> tuple[Files, str | None] | None:
-    """A Ray task: train one run in a scratch folder, resuming the interrupted run ``files``
-    holds (if any), and stop at the next chunk once ``stop`` (a :class:`StopFlag`) is set.
+def train_remote(
+    config_json: str, files: Files | None, board, name: str, start: int
+) -> tuple[Files, str | None] | None:
+    """A Ray task: train run ``name`` in a scratch folder, resuming the interrupted run ``files``
+    holds (``start`` episodes; none: 0), reporting its episodes to ``board`` (a :class:`Board`)
+    as it starts and after each chunk, and stopping at the next chunk once the board says so.
     Returns the run folder's files and why the run stopped before its end (None: it finished),
     or None if the stop came before it started."""
     import ray
 
     from roverswarm.jaxcache import enable_compilation_cache
 
-    if ray.get(stop.asked.remote()):
+    if ray.get(board.report.remote(name, start)):
         return None
     enable_compilation_cache()
     with tempfile.TemporaryDirectory() as scratch:
@@ -82,7 +93,7 @@ def train_remote(config_json: str, files: Files | None, stop) -> tuple[Files, st
         write_files(out, files or {})
 
         def asked(episodes: int) -> bool:
-            return ray.get(stop.asked.remote())
+            return ray.get(board.report.remote(name, episodes))
 
         try:
             train(config_from_json(config_json), out=out, resume=bool(files), progress=False, on_chunk=asked)
@@ -123,20 +134,21 @@ def run_ray(
         if not ray.is_initialized():
             ray.init(address=address, log_to_driver=False)  # sets its own SIGTERM handler: before JobsStop
         task = ray.remote(num_cpus=1, max_retries=retries)(train_remote)
-        flag = ray.remote(num_cpus=0)(StopFlag).remote()
+        board = ray.remote(num_cpus=0)(Board).remote()
         failure: Exception | None = None
         with JobsStop() as stop:
             pending = {}
             try:
                 for run in runs:
-                    files = read_files(run.folder) if status(run) == "partial" else None
-                    pending[task.remote(config_to_json(run.config), files, flag)] = run
-                    summary.progress(run, episodes_done(run))
+                    resume = status(run) == "partial"
+                    files, start = (read_files(run.folder), episodes_done(run)) if resume else (None, 0)
+                    pending[task.remote(config_to_json(run.config), files, board, run.name, start)] = run
                 told = False
                 while pending:
                     if (stop.asked or failure is not None) and not told:
-                        flag.ask.remote()
+                        board.ask.remote()
                         told = True
+                    follow(summary, list(pending.values()), ray.get(board.reports.remote()))
                     for ref in ray.wait(list(pending), num_returns=1, timeout=0.5)[0]:
                         run = pending.pop(ref)
                         try:
@@ -155,11 +167,19 @@ def run_ray(
                                 failure = failure or RunStopped(f"run '{run.name}': {stopped}")
             finally:  # a task left running (this command failed) stops at its next chunk
                 if pending:
-                    flag.ask.remote()
+                    board.ask.remote()
     if failure is not None:
         raise failure
     if stop.asked:
         raise RunStopped("interrupted; every running run saved a checkpoint: rerun the same command to resume")
+
+
+def follow(summary: Summary, pending: list[GridRun], reports: dict[str, int]) -> None:
+    """The live table's progress of the ``pending`` runs whose task reported to the board: a
+    task not started yet stays queued, and a run that ended is not taken back to running."""
+    for run in pending:
+        if run.name in reports:
+            summary.progress(run, reports[run.name])
 
 
 def _failure(run: GridRun, error: Exception, retries: int) -> Exception:
