@@ -83,8 +83,13 @@ def test_gae_matches_a_python_loop_across_truncation_and_termination():
 
 
 def numpy_loss(config, log_probs, entropy, values, b):
-    mask = b["mask"]
-    mean = lambda x: (x * mask).sum() / mask.sum()
+    """The loss as written out: the value's terms over the masked-in samples, the policy's
+    over those whose rover had not failed (``acting``)."""
+    mask = b["mask"] * b["acting"]
+
+    def mean(x, m=mask):
+        return (x * m).sum() / m.sum()
+
     adv = b["advantages"]
     adv_mean = mean(adv)
     adv = (adv - adv_mean) / (np.sqrt(mean((adv - adv_mean) ** 2)) + 1e-8)
@@ -94,7 +99,7 @@ def numpy_loss(config, log_probs, entropy, values, b):
     if config.value_clip is not None:
         clipped = b["values"] + np.clip(values - b["values"], -config.value_clip, config.value_clip)
         error = np.maximum(error, (clipped - b["targets"]) ** 2)
-    value = 0.5 * mean(error)
+    value = 0.5 * mean(error, b["mask"])
     total = policy + config.vf_coef * value - config.ent_coef * mean(entropy)
     return total, policy, value
 
@@ -110,6 +115,7 @@ def test_ppo_loss_matches_numpy(value_clip):
         "targets": f32(rng.normal(size=size)),
         "values": f32(rng.normal(size=size)),
         "mask": f32(rng.random(size) < 0.8),
+        "acting": f32(rng.random(size) < 0.7),  # the others: rovers that had failed
     }
     # ratios well beyond the clip range on both sides, value changes beyond the value clip
     log_probs = f32(b["log_probs"] + rng.normal(0, 0.3, size=size))
@@ -128,9 +134,15 @@ def test_ppo_loss_matches_numpy(value_clip):
     np.testing.assert_allclose(parts["value_loss"], want_value, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(total, want_total, rtol=1e-5, atol=1e-6)
     ratio = np.exp(log_probs - b["log_probs"])
-    clipped = (np.abs(ratio - 1) > config.clip_eps) * b["mask"]
-    assert 0.1 < clipped.sum() / b["mask"].sum() < 0.9  # the batch exercises both branches
-    np.testing.assert_allclose(parts["clip_fraction"], clipped.sum() / b["mask"].sum(), rtol=1e-5)
+    acts = b["mask"] * b["acting"]
+    clipped = (np.abs(ratio - 1) > config.clip_eps) * acts
+    assert 0.1 < clipped.sum() / acts.sum() < 0.9  # the batch exercises both branches
+    np.testing.assert_allclose(parts["clip_fraction"], clipped.sum() / acts.sum(), rtol=1e-5)
+    # a failed rover's sample moves the value's loss, not the policy's
+    failed = np.flatnonzero((b["mask"] == 1) & (b["acting"] == 0))
+    changed = batch.replace(advantages=batch.advantages.at[failed].add(5.0), targets=batch.targets.at[failed].add(1.0))
+    _, moved = jax.jit(ppo.ppo_loss, static_argnums=0)(config, log_probs, entropy, values, changed)
+    assert moved["policy_loss"] == parts["policy_loss"] and moved["value_loss"] != parts["value_loss"]
 
 
 def test_value_target_statistics_match_numpy_over_masked_batches():
@@ -219,7 +231,7 @@ def test_rollout_flags_under_jit_vmap(tiny_ppo_config):
     @jax.jit
     def collect_and_batch(key):
         traj, episode = onpolicy.collect(config, mission, state.actor, key)
-        values = onpolicy.values_of(config, state.critic, state.returns, traj.obs)
+        values, _ = onpolicy.values_of(config, state.critic, state.returns, traj.obs)
         return traj, episode, onpolicy.make_batch(config, state, traj)[0], values
 
     traj, episode, batch, values = collect_and_batch(jax.random.PRNGKey(2))
@@ -229,10 +241,41 @@ def test_rollout_flags_under_jit_vmap(tiny_ppo_config):
     np.testing.assert_array_equal(traj.mask[:, 0], first.astype(np.float32))
     assert (traj.rewards[1:] == 0).all()
     np.testing.assert_allclose(episode["episode_reward"], traj.rewards[0].sum(-1), rtol=1e-5)
+    # the final coverage distance is the state's the episode ended in (every POI under a rover),
+    # in training's metrics and in a rollout's, not the frozen state's stepped on by its velocity
+    np.testing.assert_array_equal(episode["coverage_distance"], 0.0)
+    np.testing.assert_array_equal(rollout(RANDOM, jax.random.PRNGKey(2), mission, 8).stats.coverage_distance, 0.0)
     # no bootstrap at the termination: the advantage is r - V; later steps are masked out
     advantages = batch.advantages.reshape(traj.rewards.shape)
     np.testing.assert_allclose(advantages[0], traj.rewards[0] - values[0], atol=1e-4)
     assert (batch.mask.reshape(traj.rewards.shape)[1:] == 0).all()
+
+
+def test_a_failed_rover_is_out_of_the_policys_samples_and_the_value_clip_is_centred_on_its_output(tiny_ppo_config):
+    """With a failure in every episode, ``acting`` is 0 exactly where the rover stands still
+    for good (its position no longer follows its action); with --value-norm the batch's values
+    are the value network's own outputs, so --value-clip's window is centred on them."""
+    config = with_options(tiny_ppo_config, {"fail_rate": 1.0, "value_clip": 0.2, "num_envs": 10})
+    params = validate(config)
+    state = ppo.init_ppo(jax.random.PRNGKey(0), config, params.num_rovers, observation_size(params))
+    nets = ppo_networks.policy_networks(config.learner, config.ppo)
+
+    @jax.jit
+    def collect_and_batch(key):
+        traj, _ = onpolicy.collect(config, params, state.actor, key)
+        batch, returns = onpolicy.make_batch(config, state, traj)
+        return traj, batch, returns, nets.value(state.critic, batch.critic_inputs)
+
+    traj, batch, returns, outputs = collect_and_batch(jax.random.PRNGKey(3))
+    acting = np.asarray(traj.acting)  # [T, E, N]
+    assert (np.diff(acting, axis=0) <= 0).all(), "a failed rover does not come back"
+    assert (acting[-1] == 0).sum(axis=-1).tolist() == [1] * config.num_envs  # one failure per episode
+    position, next_position = (np.asarray(o)[..., 2:4] for o in (traj.obs, traj.next_obs))  # own velocity first
+    stands = np.all(next_position == position, axis=-1)
+    assert stands[acting == 0].all() and not stands[1:][acting[1:] == 1].any()  # at step 0 no rover has speed yet
+    np.testing.assert_array_equal(batch.acting, acting.reshape(-1))
+    assert not np.allclose(returns.mean, state.returns.mean)  # the statistics moved with this batch
+    np.testing.assert_allclose(batch.values, outputs, rtol=1e-6)
 
 
 # ----------------------------------------------------------------------------- determinism

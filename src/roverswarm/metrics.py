@@ -21,6 +21,8 @@ from typing import TYPE_CHECKING
 import jax
 import jax.numpy as jnp
 
+from roverswarm.env.mars import EnvParams, EnvState, coverage_distance, masks_of
+
 if TYPE_CHECKING:
     from roverswarm.algos.learner import AlgoConfig
 
@@ -54,15 +56,29 @@ def shaped_rewards(rewards: jax.Array, info: dict[str, jax.Array], learner: Algo
     return rewards - contacts + swarm[..., None]
 
 
-def step_stats(rewards: jax.Array, info: dict[str, jax.Array], live: jax.Array | None = None) -> dict[str, jax.Array]:
+def step_stats(
+    rewards: jax.Array, info: dict[str, jax.Array], live: jax.Array | None = None, settled: jax.Array | None = None
+) -> dict[str, jax.Array]:
     """What one step [...] adds to its episode's totals: ``rewards`` [..., N], ``collisions``,
     ``trap_contacts`` and ``coverage_distance``; with ``live`` [...] (0 or False after a
-    termination) the rewards and contacts of dead steps count nothing."""
+    termination) the rewards and contacts of dead steps count nothing, and their coverage
+    distance is ``settled`` [...] (:func:`settled_coverage`: that of the state the episode
+    ended in, not of the state stepped on from it)."""
     stats = {"rewards": rewards, **contact_counts(info)}
     if live is not None:
         stats = {k: v * (live[..., None] if k == "rewards" else live) for k, v in stats.items()}
-    stats["coverage_distance"] = info["coverage_distance"]
+    coverage = info["coverage_distance"]
+    stats["coverage_distance"] = coverage if settled is None else jnp.where(live > 0, coverage, settled)
     return stats
+
+
+def settled_coverage(state: EnvState, params: EnvParams) -> jax.Array | None:
+    """[] The coverage distance of ``state``, the state a step starts from, where episodes end
+    when complete (``params.terminate_on_complete``: after the end the state stands still);
+    None where they never end early."""
+    if not params.terminate_on_complete:
+        return None
+    return coverage_distance(state.rover_pos, state.poi_pos, masks_of(state))
 
 
 def episode_totals(steps: dict, axis: int = 0) -> dict:

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from roverswarm.env.mars import EnvParams, EnvState, coverage_distance, masks_of, reset, step_env
-from roverswarm.metrics import EPISODE_METRICS, episode_totals, step_stats
+from roverswarm.metrics import EPISODE_METRICS, episode_totals, settled_coverage, step_stats
 from roverswarm.policies import ActFn, Plan, Policy
 
 
@@ -63,9 +63,11 @@ def _run_episode(act: ActFn, key: jax.Array, obs: jax.Array, state: EnvState, pl
         obs, state, done = carry
         actions = act(step_key, obs, state, plan, weights, params)
         next_obs, next_state, rewards, terminated, _, info = step_env(state, actions, params)
+        before = state
         obs, state = jax.tree.map(lambda old, new: jnp.where(done, old, new), (obs, state), (next_obs, next_state))
         live = 1.0 - done.astype(jnp.float32)
-        out = {**step_stats(rewards, info, live), "rover_pos": state.rover_pos, "observed": state.observed}
+        stats = step_stats(rewards, info, live, settled_coverage(before, params))
+        out = {**stats, "rover_pos": state.rover_pos, "observed": state.observed}
         return (obs, state, done | terminated), out
 
     carry = (obs, state, jnp.zeros((), bool))

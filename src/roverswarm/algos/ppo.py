@@ -93,7 +93,8 @@ class PPOConfig:
     """Weight of the value loss. Actor and value network have their own Adam, so it only
     scales the value gradient before its norm is clipped."""
     activation: Literal["tanh", "relu"] = "tanh"
-    """Activation of the hidden layers."""
+    """Activation of the hidden layers (`--network mlp` and `nearest`; the attention network of
+    `--network entity` has its own: ReLU, and Flax's default initialisation)."""
     init_log_std: float = -0.5
     """Initial log standard deviation of the Gaussian policy (per action dimension)."""
     value_norm: bool = True
@@ -262,9 +263,10 @@ class Batch:
     log_probs: jax.Array  # [B] under the rollout's policy
     advantages: jax.Array  # [B]
     targets: jax.Array  # [B] value targets R (standardised with --value-norm)
-    values: jax.Array  # [B] the rollout's values V_old (standardised with --value-norm)
+    values: jax.Array  # [B] the value network's output at the rollout, V_old (standardised with --value-norm)
     mask: jax.Array  # [B] sample weights: 0 after a termination or for no rover, else 1 (--balance-sizes: B / N)
     teacher: jax.Array | None = None  # [B, A] the oracle's actions (--teacher), else None
+    acting: jax.Array | None = None  # [B] 0 where the rover had failed (its action moved nothing), else 1; None: all 1
 
 
 def ppo_loss(
@@ -275,36 +277,44 @@ def ppo_loss(
     ``log_probs`` [B] of the batch's actions, ``entropy`` [B] and ``values`` [B] under the
     current networks; ``batch`` holds the rollout's log-probabilities, advantages, value
     targets, values and mask (means, and the advantages' standardisation, are weighted by the
-    mask: over the masked-in samples, each by its --balance-sizes weight).
+    mask: over the masked-in samples, each by its --balance-sizes weight). The policy's terms
+    leave out the samples of failed rovers (``batch.acting``), whose actions moved nothing; the
+    value's keep them (the swarm's reward still follows).
 
     Returns ``(total, parts)``, parts: ``policy_loss``, ``value_loss``, ``entropy``,
     ``approx_kl`` (mean of (rho - 1) - log rho), ``clip_fraction`` (|rho - 1| > eps).
     """
     mask = batch.mask
+    acts = policy_mask(batch)
     adv = batch.advantages
     if config.normalize_advantages:
-        mean = masked_mean(adv, mask)
-        std = jnp.sqrt(masked_mean(jnp.square(adv - mean), mask))
+        mean = masked_mean(adv, acts)
+        std = jnp.sqrt(masked_mean(jnp.square(adv - mean), acts))
         adv = (adv - mean) / (std + 1e-8)
     log_ratio = log_probs - batch.log_probs
     ratio = jnp.exp(log_ratio)
     surrogate = jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - config.clip_eps, 1 + config.clip_eps) * adv)
-    policy_loss = -masked_mean(surrogate, mask)
+    policy_loss = -masked_mean(surrogate, acts)
     value_error = jnp.square(values - batch.targets)
     if config.value_clip is not None:
         clipped = batch.values + jnp.clip(values - batch.values, -config.value_clip, config.value_clip)
         value_error = jnp.maximum(value_error, jnp.square(clipped - batch.targets))
     value_loss = 0.5 * masked_mean(value_error, mask)
-    mean_entropy = masked_mean(entropy, mask)
+    mean_entropy = masked_mean(entropy, acts)
     total = policy_loss + config.vf_coef * value_loss - config.ent_coef * mean_entropy
     parts = {
         "policy_loss": policy_loss,
         "value_loss": value_loss,
         "entropy": mean_entropy,
-        "approx_kl": masked_mean((ratio - 1.0) - log_ratio, mask),
-        "clip_fraction": masked_mean((jnp.abs(ratio - 1.0) > config.clip_eps).astype(jnp.float32), mask),
+        "approx_kl": masked_mean((ratio - 1.0) - log_ratio, acts),
+        "clip_fraction": masked_mean((jnp.abs(ratio - 1.0) > config.clip_eps).astype(jnp.float32), acts),
     }
     return total, parts
+
+
+def policy_mask(batch: Batch) -> jax.Array:
+    """[B] the weights of the policy's terms: the batch's mask without the failed rovers' samples."""
+    return batch.mask if batch.acting is None else batch.mask * batch.acting
 
 
 def update_minibatch(config: OnPolicyConfig, state: PPOState, batch: Batch) -> tuple[PPOState, dict[str, jax.Array]]:
@@ -323,7 +333,7 @@ def update_minibatch(config: OnPolicyConfig, state: PPOState, batch: Batch) -> t
         total, parts = ppo_loss(config.ppo, log_probs, entropy, values, batch)
         if batch.teacher is None:
             return total, parts
-        imitation = masked_mean(jnp.sum(jnp.square(mean - batch.teacher), axis=-1), batch.mask)
+        imitation = masked_mean(jnp.sum(jnp.square(mean - batch.teacher), axis=-1), policy_mask(batch))
         weight = teacher_weight(config, state.actor_opt)
         return total + weight * imitation, {**parts, "imitation_loss": imitation}
 

@@ -37,11 +37,11 @@ from roverswarm.algos.ppo import (
     updates_per_iteration,
 )
 from roverswarm.algos.ppo_networks import policy_networks
-from roverswarm.env.mars import EnvParams, observation_size, step_env
+from roverswarm.env.mars import EnvParams, failed_rovers, observation_size, step_env
 from roverswarm.episodes import executed, exists, reset_all, training_params, training_rewards
 from roverswarm.errors import require, require_finite, require_positive
 from roverswarm.learners.base import Family, Runner, no_replay, seed_keys, start_runner
-from roverswarm.metrics import episode_totals, step_stats
+from roverswarm.metrics import episode_totals, settled_coverage, step_stats
 from roverswarm.oracle import greedy_plan, oracle_actions
 
 LOG_STD_RANGE = (-10.0, 2.0)
@@ -85,6 +85,7 @@ class Trajectory:
     truncated: jax.Array  # [T, E] bool
     mask: jax.Array  # [T, E] float, 1 until (and including) the terminating step
     rovers: jax.Array  # [T, E, N] float, 1 for a rover that exists (all of them unless sizes are mixed)
+    acting: jax.Array  # [T, E, N] float, 1 for a rover whose action moves it (0 once it has failed)
     teacher: jax.Array | None = None  # [T, E, N, A] the oracle's actions (--teacher), else None
 
 
@@ -187,9 +188,10 @@ def collect(
             truncated=truncated & live,
             mask=live.astype(jnp.float32),
             rovers=rovers.astype(jnp.float32),
+            acting=(~jax.vmap(failed_rovers)(env_state)).astype(jnp.float32),
             teacher=None if plan is None else jax.vmap(oracle_actions, in_axes=(0, 0, None))(env_state, plan, params),
         )
-        stats = step_stats(rewards, info, live)
+        stats = step_stats(rewards, info, live, jax.vmap(settled_coverage, in_axes=(0, None))(env_state, params))
         carry = (_where_env(done, obs, next_obs), _where_env(done, env_state, next_state), done | terminated)
         return carry, (step, stats)
 
@@ -198,23 +200,26 @@ def collect(
     return traj, episode_totals(stats)
 
 
-def values_of(config: OnPolicyConfig, critic, returns: ObsNorm, obs) -> jax.Array:
-    """Every rover's value [..., N] of observations [..., N, ...] (de-standardised with --value-norm)."""
+def values_of(config: OnPolicyConfig, critic, returns: ObsNorm, obs) -> tuple[jax.Array, jax.Array]:
+    """Every rover's value [..., N] of observations [..., N, ...], de-standardised with
+    --value-norm, and the value network's own output (the same without it)."""
     nets = policy_networks(config.learner, config.ppo)
-    value = nets.value(critic, nets.critic_inputs(obs))
+    output = nets.value(critic, nets.critic_inputs(obs))
     if config.ppo.value_norm:
-        return returns.mean[0] + std(returns)[0] * value
-    return value
+        return returns.mean[0] + std(returns)[0] * output, output
+    return output, output
 
 
 def make_batch(config: OnPolicyConfig, state: PPOState, traj: Trajectory) -> tuple[Batch, ObsNorm]:
     """GAE per rover on ``traj`` and the flat [B] batch of the update; with --value-norm the
-    value-target statistics are updated first and targets and values standardised by them.
-    Samples of rovers that do not exist (mixed sizes) are masked out like steps after a
-    termination. Returns the batch and the (updated) value-target statistics."""
+    value-target statistics are updated first and targets standardised by them (the values: the
+    value network's own output, the centre of --value-clip's window). Samples of rovers that
+    do not exist (mixed sizes) are masked out like steps after a termination; a failed rover's
+    are out of the policy's loss (its action moves nothing), not the value's. Returns the batch
+    and the (updated) value-target statistics."""
     nets = policy_networks(config.learner, config.ppo)
-    values = values_of(config, state.critic, state.returns, traj.obs)  # [T, E, N]
-    next_values = values_of(config, state.critic, state.returns, traj.next_obs)
+    values, outputs = values_of(config, state.critic, state.returns, traj.obs)  # [T, E, N]
+    next_values, _ = values_of(config, state.critic, state.returns, traj.next_obs)
     per_rover = lambda x: jnp.broadcast_to(x[..., None], values.shape)  # noqa: E731
     advantages, targets = gae(
         traj.rewards,
@@ -230,7 +235,6 @@ def make_batch(config: OnPolicyConfig, state: PPOState, traj: Trajectory) -> tup
     if config.ppo.value_norm:
         returns = update_obs_norm(returns, targets[..., None], mask)
         targets = (targets - returns.mean[0]) / std(returns)[0]
-        values = (values - returns.mean[0]) / std(returns)[0]
     flat = lambda tree: jax.tree.map(lambda x: x.reshape(-1, *x.shape[3:]), tree)  # noqa: E731
     batch = Batch(
         actor_inputs=flat(nets.actor_inputs(traj.obs)),
@@ -239,8 +243,9 @@ def make_batch(config: OnPolicyConfig, state: PPOState, traj: Trajectory) -> tup
         log_probs=flat(traj.log_probs),
         advantages=flat(advantages),
         targets=flat(targets),
-        values=flat(values),
+        values=flat(outputs),
         mask=flat(mask * size_weights(traj.rovers) if config.ppo.balance_sizes else mask),
+        acting=flat(traj.acting),
         teacher=flat(traj.teacher),
     )
     return batch, returns
