@@ -21,13 +21,17 @@ def reference_probabilities(losses: np.ndarray, alpha: float, beta: float, readi
     w_i = p_i^alpha with p_i the ascending rank of loss i (ties: average rank; +inf is a new,
     unranked transition, so it ties at the top). ``schaul`` (Schaul et al.'s rank-based
     replay): w_i = d_i^-alpha with d_i the descending rank among the ranked (finite) losses,
-    and w = 1 (the top priority) for a new one."""
+    and for each of the n new ones that of their average rank among themselves at the top,
+    ((n + 1) / 2)^-alpha; ``rerank``: after a refresh, every loss ranked together (the new ones
+    tied at the top, the others below them)."""
     if reading == "paper":
         powered = stats.rankdata(losses, method="average").astype(np.float64) ** alpha
+    elif reading == "rerank":
+        powered = stats.rankdata(-losses, method="average").astype(np.float64) ** -alpha
     else:
         ranked = np.isfinite(losses)
         descending = stats.rankdata(-losses[ranked], method="average").astype(np.float64)
-        powered = np.ones(len(losses))
+        powered = np.full(len(losses), ((len(losses) - ranked.sum() + 1) / 2) ** -alpha)
         powered[ranked] = descending**-alpha
     return (1.0 - beta) * powered / powered.sum() + beta / len(losses)
 
@@ -119,14 +123,21 @@ def test_schaul_sampling_follows_one_over_rank(alpha, beta):
 
 @pytest.mark.parametrize("reading", ["paper", "schaul"])
 def test_equal_losses_and_new_transitions_in_each_reading(reading):
-    """Ties share their average rank; after an add, the new transitions sit at the top:
-    tied above the ranked ones (``paper``) or each at the top priority (``schaul``)."""
+    """Ties share their average rank; after an add, the new transitions sit at the top, tied
+    above the ranked ones (``paper``; ``schaul``: each with their average rank among
+    themselves), and a refresh ranks them so. ``schaul``'s new ones then draw 36% before the
+    refresh and 50% after it (the ranked ones' weights are the last refresh's until the next
+    one ranks them below the new ones); with weight 1 each they drew 75% before it."""
     rng = np.random.default_rng(11)
     buffer, state = filled(capacity=128, batch_size=256, stored=70, alpha=0.7, beta=0.1, reading=reading)
     losses = np.stack([rng.choice([0.5, 2.0, 8.0, 30.0], size=70) for _ in range(N)])
     state = buffer.add(with_losses(buffer, state, losses), transitions(70, 30))
     now = np.concatenate([losses, np.full((N, 30), np.inf)], axis=1)
-    assert_matches(*draw(buffer, state), np.stack([reference_probabilities(l, 0.7, 0.1, reading) for l in now]))
+    before = np.stack([reference_probabilities(l, 0.7, 0.1, reading) for l in now])
+    assert_matches(*draw(buffer, state), before)
+    after = np.stack([reference_probabilities(l, 0.7, 0.1, "paper" if reading == "paper" else "rerank") for l in now])
+    assert_matches(*draw(buffer, buffer.refresh(state, jnp.bool_(True))), after)  # +inf losses ranked too
+    np.testing.assert_allclose(before[:, 70:].sum(-1), after[:, 70:].sum(-1), atol=0.15)
 
 
 def test_equal_losses_share_their_average_rank():
