@@ -46,7 +46,8 @@ class AlgoConfig:
     tau: float = 0.01
     """Soft target update rate."""
     grad_clip: float = 0.5
-    """Global gradient-norm clip of each network's update."""
+    """Global gradient-norm clip of each network's update (the twin critics of
+    ``twin_critics``, stacked, are clipped together: one norm over both)."""
     hidden: tuple[int, ...] = (128, 128)
     """Hidden layer widths of actors and critics (ReLU)."""
     action_penalty: float = 1e-3
