@@ -242,9 +242,9 @@ def _agent_update(
     a_loss, a_grads = jax.vmap(jax.value_and_grad(scaled))(state.actor, batch.obs, batch.actions, active)
     actor, actor_opt_state = jax.vmap(lambda g, o, p: _apply(actor_opt, g, o, p))(a_grads, state.actor_opt, state.actor)
     # a zero gradient still moves Adam's parameters by its momentum: keep such a sub-policy as it was
-    actor, actor_opt_state = jax.vmap(lambda on, new, old: jax.tree.map(lambda n, o: jnp.where(on > 0, n, o), new, old))(
-        active, (actor, actor_opt_state), (state.actor, state.actor_opt)
-    )
+    actor, actor_opt_state = jax.vmap(
+        lambda on, new, old: jax.tree.map(lambda n, o: jnp.where(on > 0, n, o), new, old)
+    )(active, (actor, actor_opt_state), (state.actor, state.actor_opt))
 
     new_state = _finish(
         config, state, actor, actor_opt_state, critic, critic_opt_state, due, approx=approx, approx_opt=approx_opt
