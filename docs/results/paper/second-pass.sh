@@ -67,3 +67,8 @@ roverswarm reproduce --out "$out/swarm-k1-confirm" --preset swarm --scenarios pa
 roverswarm reproduce --out "$out/swarm-ddpg-k1" --preset swarm --scenarios paper-5 --episodes 20000 \
   --algorithms ddpg ddpg-optimizer --variants "${variants[0]}"
 roverswarm reproduce --out "$out/swarm-k1" --preset swarm --scenarios paper-2 paper-3 paper-4 paper-5 "${arms[@]}"
+# After the schaul reading's fix (2026-12-02: n new transitions had weighed n x weight 1, most
+# draws between refreshes went to them), its reference-k1 arm again at N = 2 and 3, beside plain
+# MADDPG trained anew on the same seeds (about 30 minutes).
+roverswarm reproduce --out "$out/reference-k1-schaul-fixed" --scenarios paper-2 paper-3 --episodes 20000 \
+  --algorithms maddpg maddpg-optimizer --variants "${variants[2]}"
