@@ -137,7 +137,8 @@ def test_gradients_flow_through_step_as_through_step_env(paper3):
 def test_gradients_through_many_steps_are_finite_even_with_rovers_at_one_spot(paper3):
     """The contact force took the root of a rover's zero distance to itself: its infinite
     gradient made the gradient of any rollout longer than two steps NaN; two rovers at one
-    spot made the forward pass NaN too."""
+    spot made the forward pass NaN too; a rover standing exactly on a POI (a mission may start
+    it there) made the coverage distance's gradient NaN."""
     _, state = reset(jax.random.PRNGKey(0), paper3)
     actions = jax.random.uniform(jax.random.PRNGKey(1), (6, 3, 2), minval=-1, maxval=1)
 
@@ -149,8 +150,12 @@ def test_gradients_through_many_steps_are_finite_even_with_rovers_at_one_spot(pa
         return jax.lax.scan(body, state, actions)[1].sum()
 
     together = state.replace(rover_pos=state.rover_pos.at[1].set(state.rover_pos[0]))
-    for start in (state, together):
-        value, grads = jax.jit(jax.value_and_grad(total))(actions, start)
+    on_a_poi = state.replace(
+        rover_pos=state.rover_pos.at[2].set(state.poi_pos[0]), rover_vel=jnp.zeros_like(state.rover_vel)
+    )
+    still = actions.at[:, 2].set(0.0)  # the rover on the POI stays there
+    for start, acts in ((state, actions), (together, actions), (on_a_poi, still)):
+        value, grads = jax.jit(jax.value_and_grad(total))(acts, start)
         assert np.isfinite(value) and np.isfinite(grads).all() and np.abs(grads).max() > 0
 
 

@@ -146,8 +146,11 @@ def observe_radii(params: EnvParams) -> jax.Array:
 
 
 def pairwise_dist(a: jax.Array, b: jax.Array) -> jax.Array:
-    """[A, 2], [B, 2] -> [A, B] Euclidean distances."""
-    return jnp.sqrt(jnp.sum(jnp.square(a[:, None, :] - b[None, :, :]), axis=-1))
+    """[A, 2], [B, 2] -> [A, B] Euclidean distances; where two points coincide (a rover on a
+    POI) the distance is 0 with a gradient of 0, not the square root's NaN."""
+    squared = jnp.sum(jnp.square(a[:, None, :] - b[None, :, :]), axis=-1)
+    apart = squared > 0
+    return jnp.where(apart, jnp.sqrt(jnp.where(apart, squared, 1.0)), 0.0)
 
 
 def coverage_distance(rover_pos: jax.Array, poi_pos: jax.Array, masks: Masks | None = None) -> jax.Array:
