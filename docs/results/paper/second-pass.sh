@@ -68,7 +68,9 @@ roverswarm reproduce --out "$out/swarm-ddpg-k1" --preset swarm --scenarios paper
   --algorithms ddpg ddpg-optimizer --variants "${variants[0]}"
 roverswarm reproduce --out "$out/swarm-k1" --preset swarm --scenarios paper-2 paper-3 paper-4 paper-5 "${arms[@]}"
 # After the schaul reading's fix (2026-12-02: n new transitions had weighed n x weight 1, most
-# draws between refreshes went to them), its reference-k1 arm again at N = 2 and 3, beside plain
-# MADDPG trained anew on the same seeds (about 30 minutes).
+# draws between refreshes went to them), its reference-k1 arm again at N = 2 to 5, beside plain
+# MADDPG trained anew on the same seeds (about 30 minutes each line).
 roverswarm reproduce --out "$out/reference-k1-schaul-fixed" --scenarios paper-2 paper-3 --episodes 20000 \
+  --algorithms maddpg maddpg-optimizer --variants "${variants[2]}"
+roverswarm reproduce --out "$out/reference-k1-schaul-fixed-n45" --scenarios paper-4 paper-5 --episodes 20000 \
   --algorithms maddpg maddpg-optimizer --variants "${variants[2]}"
