@@ -63,10 +63,10 @@ def _run_episode(act: ActFn, key: jax.Array, obs: jax.Array, state: EnvState, pl
         obs, state, done = carry
         actions = act(step_key, obs, state, plan, weights, params)
         next_obs, next_state, rewards, terminated, _, info = step_env(state, actions, params)
-        before = state
+        settled = settled_coverage(state, params)  # the state a finished episode stands in
         obs, state = jax.tree.map(lambda old, new: jnp.where(done, old, new), (obs, state), (next_obs, next_state))
         live = 1.0 - done.astype(jnp.float32)
-        stats = step_stats(rewards, info, live, settled_coverage(before, params))
+        stats = step_stats(rewards, info, live, settled)
         out = {**stats, "rover_pos": state.rover_pos, "observed": state.observed}
         return (obs, state, done | terminated), out
 

@@ -40,7 +40,7 @@ from roverswarm.runs import (
     training_seconds,
     write_csv,
 )
-from roverswarm.storage import atomic_write, checkpoint_changes, load_checkpoint, save_checkpoint
+from roverswarm.storage import checkpoint_changes, load_checkpoint, save_checkpoint, write_text
 
 # ----------------------------------------------------------------------------- host loop
 
@@ -211,7 +211,7 @@ def _train(
                 f"'{out}' already holds a run; continue it with --resume or choose another --out",
             )
             out.mkdir(parents=True, exist_ok=True)
-        atomic_write(out / CONFIG, lambda f: f.write(config_to_json(config)))
+        write_text(out / CONFIG, config_to_json(config))
     writer = SummaryWriter(str(out / "tb")) if out is not None else None
 
     chunks = config.episodes // config.log_every

@@ -334,9 +334,9 @@ def check_evaluations(runs: list[GridRun], episodes: int) -> None:
     """Refuse, before any run trains, an evaluation of ``episodes`` episodes per policy that
     will not fit in memory once the runs are trained (:func:`~roverswarm.runs.check_rollout_memory`,
     as ``evaluate`` checks it then: an error after all the training, naming --episodes)."""
+    sets = f"--eval-episodes {episodes}"
     for run in runs:
         handle = Run.of(run.config, None)  # its config and environment (validated), no networks yet
-        sets = f"--eval-episodes {episodes}"
         check_rollout_memory(handle, [handle.params], episodes, sets, f"evaluating run '{run.name}'")
 
 

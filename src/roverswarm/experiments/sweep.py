@@ -54,7 +54,7 @@ from roverswarm.limits import check_memory, open_limited, read_limited, safe_nam
 from roverswarm.parsing import load_text
 from roverswarm.presets import PRESETS
 from roverswarm.runs import METRICS, folder_lock, markdown_table, read_metrics, training_seconds, write_csv
-from roverswarm.storage import atomic_write, save_figure
+from roverswarm.storage import save_figure, write_text
 
 EVALUATION = "evaluation.csv"
 
@@ -322,7 +322,7 @@ def sweep(config: SweepConfig, live: bool = True) -> Path:
             table.extend(table_rows(run, evaluation(run, config.eval_episodes)))
             tabulated.append(run)
             write_csv(config.out / "sweep.csv", table)
-            atomic_write(config.out / "sweep.md", lambda f: f.write(markdown(table)))
+            write_text(config.out / "sweep.md", markdown(table))
             figure(table, config.out / "sweep.png", config.eval_episodes)
 
     def execute() -> None:
