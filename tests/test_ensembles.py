@@ -6,6 +6,7 @@ training, resume and evaluation with both options; bad input."""
 from __future__ import annotations
 
 import dataclasses
+import shutil
 import signal
 
 import jax
@@ -25,7 +26,7 @@ from roverswarm.env.mars import observation_size, reset
 from roverswarm.errors import RunStopped, UserError
 from roverswarm.evaluate import evaluate_run
 from roverswarm.learners import offpolicy
-from roverswarm.runs import Run
+from roverswarm.runs import CHECKPOINT, Run
 from roverswarm.trainer import train
 
 K = 3  # sub-policies per agent: with test_ranked's N = 2 agents, G = 6 sampling groups
@@ -219,6 +220,26 @@ def test_ensemble_run_resumes_to_the_same_numbers(ensemble_run, tmp_path, signal
     resumed = train(ensemble_run.config, out=tmp_path, resume=True, progress=False)
     strip = lambda rows: [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rows]  # noqa: E731
     assert strip(resumed.metrics) == strip(ensemble_run.metrics)
+
+
+def test_a_checkpoint_from_before_the_approximations_targets_loads(ensemble_run, tmp_path):
+    """A run trained before the inferred policies had targets (its checkpoint holds no
+    ``target_approx``) loads with the targets equal to the approximations, as a fresh run
+    starts them, and evaluates as before."""
+    old = tmp_path / "old"
+    shutil.copytree(ensemble_run.out, old)
+    with np.load(old / CHECKPOINT) as data:
+        arrays = {k: data[k] for k in data.files if "/target_approx/" not in k}
+    assert any("/approx/" in k for k in arrays)
+    np.savez(old / CHECKPOINT, **arrays)
+    learner = Run(old).learner
+    assert jax.tree.structure(learner.target_approx) == jax.tree.structure(learner.approx)
+    for target, approx in zip(jax.tree.leaves(learner.target_approx), jax.tree.leaves(learner.approx)):
+        np.testing.assert_array_equal(target, approx)
+    new = Run(ensemble_run.out).learner  # trained with targets: they lag the approximations
+    assert any(np.abs(t - a).max() > 0 for t, a in zip(jax.tree.leaves(new.target_approx), jax.tree.leaves(new.approx)))
+    rewards = [[r["episode_reward"] for r in evaluate_run(run, episodes=40)] for run in (old, ensemble_run.out)]
+    assert rewards[0] == rewards[1]
 
 
 def test_evaluation_runs_random_draws_or_each_sub_policy(ensemble_run, capsys):

@@ -11,10 +11,11 @@ policies (eq. 7-8), it checks
 
 * the per-sample TD loss ``(Q - y)^2`` [N * K, B], hence the bootstrapped targets y with the
   bootstrap cut on termination, the target sub-policy each agent ran in the transition, and
-  (inferred policies) the other agents' approximations instead of their target actors;
+  (inferred policies) the other agents' target approximations (eq. 8's primes) instead of
+  their target actors;
 * the (weighted) critic loss [N] and the actor loss [N];
 * the updated critics, actors (each sub-policy on its own batch, on the *updated* critic),
-  target critics, target actors and approximations (one step on the Gaussian negative
+  target critics, target actors, approximations and their targets (one step on the Gaussian negative
   log-likelihood minus lambda times the entropy, on the separate batch of recent transitions;
   an agent's approximation of itself unused).
 
@@ -35,7 +36,8 @@ view in global order or with the neighbours taken by index disagree with the cod
 actor update leaves the actor and the targets alone on the off steps.
 The last tests check that the comparison discriminates: the reference with the actor step
 on the old critic, without cutting the bootstrap at termination, with the true target
-policies in place of the approximations, with the approximations fitted on the agent's own
+policies in place of the approximations, with the online approximations in place of their
+targets, with the approximations fitted on the agent's own
 sample instead of the recent transitions, or with sub-policy 0 for every agent in the
 target, disagrees with the code.
 """
@@ -60,17 +62,19 @@ N, O, A, B = 3, 20, 2, 32
 TOL = dict(atol=1e-5, rtol=1e-4)
 # updated parameters: an Adam step moves each one by about lr = 1e-2, by lr * g / (|g| + eps)
 # from zero moments, so where g is near eps it inherits g's float32 rounding: a handful of the
-# ensembles' ~1e5 parameters differ by up to ~4e-4 (4% of a step); a real error moves many
+# ensembles' ~1e5 parameters differ by up to ~4e-4 (4% of a step), and where |g| is below eps
+# itself by a quarter of a step (one entry of the ensemble's actor with inferred policies: g of
+# 3e-9 against 1e-8, steps of 0.0023 against 0.0050); a real error moves many
 
 
 def assert_parameters_close(got, want):
     """Over a whole network (all its leaves together: a small bias leaf of 192 entries may hold
-    the one near-eps entry), all but 1 in 10^3 entries within TOL, and every entry within 10%
-    of an Adam step."""
+    the one near-eps entry), all but 1 in 10^3 entries within TOL, all but 1 in 10^4 within 10%
+    of an Adam step, and every entry within one step."""
     got = np.concatenate([np.ravel(x) for x in jax.tree.leaves(got)])
     want = np.concatenate([np.ravel(x) for x in jax.tree.leaves(want)])
-    off = ~np.isclose(got, want, **TOL)
-    assert off.mean() <= 1e-3 and np.abs(got - want).max() < 1e-3, (off.sum(), np.abs(got - want).max())
+    off, gap = ~np.isclose(got, want, **TOL), np.abs(got - want)
+    assert off.mean() <= 1e-3 and (gap > 1e-3).mean() <= 1e-4 and gap.max() < 1e-2, (off.sum(), np.sort(gap)[-3:])
 
 
 ADAM_B1, ADAM_B2, ADAM_EPS = 0.9, 0.999, 1e-8
@@ -213,6 +217,7 @@ def reference_update(
     true_targets=False,
     ignore_sub_policy=False,
     fit_on_sample=False,
+    online_approximations=False,
     smooth=True,
     twin_max=False,
     global_order=False,
@@ -265,8 +270,9 @@ def reference_update(
             result["infer_loss"] = jnp.mean(jnp.stack(infer_loss))
 
         def target_action(j):
-            if cfg.infer_policies and j != i and not true_targets:
-                return gaussian(approx[j], next_obs[:, j])[0]  # eq. 8: the approximation's mean
+            if cfg.infer_policies and j != i and not true_targets:  # eq. 8: the target approximation's mean
+                guess = approx[j] if online_approximations else pick(pick(state.target_approx, i), j)
+                return gaussian(guess, next_obs[:, j])[0]
             every = [actor(pick(state.target_actor, j * K + k), next_obs[:, j], cfg)[0] for k in range(K)]
             return sum(jnp.where((policy[:, j] == k)[:, None], every[k], 0.0) for k in range(K))
 
@@ -311,6 +317,7 @@ def reference_update(
         )
         if approx is not None:
             result["approx"] = stack(approx)
+            result["target_approx"] = stack([soft(pick(pick(state.target_approx, i), j), approx[j]) for j in range(N)])
         results.append(result)
     out = jax.tree.map(lambda *xs: jnp.stack(xs), *results)
     flat = lambda tree: jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), tree)  # noqa: E731  [N, K] -> [N * K]
@@ -434,6 +441,8 @@ def case(request):
     state = state.replace(
         target_actor=perturbed(state.target_actor, rng), target_critic=perturbed(state.target_critic, rng)
     )
+    if cfg.infer_policies:
+        state = state.replace(target_approx=perturbed(state.target_approx, rng))
     if cfg.normalize_obs:  # a normaliser that has seen something: every entry shifted and scaled
         mean, var = rng.normal(0, 0.5, O).astype(np.float32), rng.uniform(0.5, 2.0, O).astype(np.float32)
         state = state.replace(obs_norm=ObsNorm(mean=jnp.asarray(mean), var=jnp.asarray(var), count=jnp.asarray(100.0)))
@@ -475,11 +484,11 @@ def test_critic_and_actor_losses_match_reference(case):
     np.testing.assert_allclose(info["actor_loss"], ref["actor_loss"], **TOL)
 
 
-@pytest.mark.parametrize("network", ["critic", "actor", "target_critic", "target_actor", "approx"])
+@pytest.mark.parametrize("network", ["critic", "actor", "target_critic", "target_actor", "approx", "target_approx"])
 def test_updated_parameters_match_reference(case, network):
     cfg, state, *_, new_state, _, ref = case
-    if network == "approx" and not cfg.infer_policies:
-        assert new_state.approx is None
+    if network in ("approx", "target_approx") and not cfg.infer_policies:
+        assert getattr(new_state, network) is None
         return
     moved = jax.tree.map(lambda new, old: np.abs(new - old).max(), getattr(new_state, network), getattr(state, network))
     assert max(jax.tree.leaves(moved)) > 1e-4  # the update did change this network
@@ -503,18 +512,25 @@ def test_reference_variants_are_caught(case, variant):
 
 @pytest.mark.parametrize(
     "variant",
-    [dict(true_targets=True), dict(fit_on_sample=True), dict(ignore_sub_policy=True)],
-    ids=["true_target_policies", "approximations_fit_the_sample", "target_sub_policy_0"],
+    [dict(true_targets=True), dict(fit_on_sample=True), dict(online_approximations=True), dict(ignore_sub_policy=True)],
+    ids=["true_target_policies", "approximations_fit_the_sample", "online_approximations", "target_sub_policy_0"],
 )
 def test_the_target_actions_are_caught(case, variant):
-    """Inferred policies: the targets use the approximations; ensembles: the target sub-policy
-    each agent ran in the transition. The reference without that disagrees with the code."""
+    """Inferred policies: the targets use the approximations' targets, and the approximations fit
+    the recent transitions (seen in their parameters: the targets do not move with this step's
+    fit); ensembles: the target sub-policy each agent ran in the transition. The reference
+    without that disagrees with the code."""
     cfg, state, batch, weights, new_state, info, _ = case
-    if (not cfg.infer_policies and ("true_targets" in variant or "fit_on_sample" in variant)) or (
+    inference = ("true_targets", "fit_on_sample", "online_approximations")
+    if (not cfg.infer_policies and any(name in variant for name in inference)) or (
         "ignore_sub_policy" in variant and cfg.ensemble == 1
     ):
         pytest.skip("the variant changes nothing for this case")
     wrong = reference_update(cfg, state, batch, weights, **variant)
+    if "fit_on_sample" in variant:
+        gap = jax.tree.map(lambda g, w: np.abs(g - w).max(), new_state.approx, wrong["approx"])
+        assert max(jax.tree.leaves(gap)) > 1e-3
+        return
     assert np.abs(np.asarray(info["td_loss"]) - np.asarray(wrong["td_loss"])).max() > 1e-3
 
 
@@ -581,6 +597,10 @@ def test_the_swarm_options_are_caught(case, variant):
     ):
         pytest.skip("the variant changes nothing for this case")
     wrong = reference_update(cfg, state, batch, weights, **variant)
+    if "fit_on_sample" in variant:
+        gap = jax.tree.map(lambda g, w: np.abs(g - w).max(), new_state.approx, wrong["approx"])
+        assert max(jax.tree.leaves(gap)) > 1e-3
+        return
     assert np.abs(np.asarray(info["td_loss"]) - np.asarray(wrong["td_loss"])).max() > 1e-3
 
 

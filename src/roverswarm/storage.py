@@ -31,8 +31,20 @@ def flatten(tree: dict, prefix: str = "") -> dict[str, np.ndarray]:
     return flat
 
 
+STARTS_AS = {"target_approx": "approx"}
+"""Parts of a learner that a checkpoint written before they existed lacks, and the part each
+is read from then, as a fresh run starts it: the inferred policies' targets (2026-12-02)
+start as the approximations."""
+
+
+def _older_key(key: str) -> str:
+    """The name an older checkpoint gives the array ``key`` (:data:`STARTS_AS`)."""
+    return "/".join(STARTS_AS.get(part, part) for part in key.split("/"))
+
+
 def restore(template, flat: dict[str, np.ndarray], prefix: str = ""):
-    """``template`` (a pytree of flax structs) with every leaf replaced by ``flat[path]``."""
+    """``template`` (a pytree of flax structs) with every leaf replaced by ``flat[path]``
+    (or, in a checkpoint older than that leaf, by what it starts as: :data:`STARTS_AS`)."""
 
     def fill(node, path):
         if isinstance(node, dict):
@@ -40,6 +52,8 @@ def restore(template, flat: dict[str, np.ndarray], prefix: str = ""):
         if node is None:
             return None
         key = prefix + path[:-1]
+        if key not in flat and _older_key(key) in flat:
+            key = _older_key(key)
         if key not in flat:
             raise UserError(f"checkpoint does not match this run: it has no '{key}'")
         value = flat[key]

@@ -3,7 +3,8 @@
 Agent i keeps an approximation mu_hat_i^j of every other agent j's policy: a Gaussian with
 mean ``tanh(MLP(o_j))`` and a learned, state-independent log-std, fitted to j's actions in a
 batch of recent transitions by minimising the negative log-likelihood minus lambda times the
-entropy. :mod:`roverswarm.algos.maddpg` uses the approximations' means in agent i's target.
+entropy. :mod:`roverswarm.algos.maddpg` uses the means of the approximations' soft-updated
+targets in agent i's target (eq. 8).
 """
 
 from __future__ import annotations

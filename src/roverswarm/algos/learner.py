@@ -168,6 +168,7 @@ class LearnerState:
     critic_opt: Any  # [N, ...]
     approx: Any = None  # [N, N, ...]: agent i's approximation of agent j's policy (inferred policies)
     approx_opt: Any = None  # [N, N, ...]
+    target_approx: Any = None  # [N, N, ...]: the approximations' targets (eq. 8), soft-updated as the target actors
     obs_norm: ObsNorm | None = None  # --normalize-obs
     updates: jax.Array | None = None  # [] int32 updates so far (--actor-delay > 1)
 
@@ -281,6 +282,7 @@ def init_learner(key: jax.Array, config: AlgoConfig, num_agents: int, obs_size: 
     return LearnerState(
         approx=approx,
         approx_opt=approx_opt,
+        target_approx=None if approx is None else jax.tree.map(jnp.copy, approx),
         actor=actor,
         critic=critic,
         # copies, not aliases: the training loop donates its state buffers

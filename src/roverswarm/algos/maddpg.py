@@ -37,9 +37,11 @@ before each critic step to the other agents' actions in a batch of recent transi
 ``recent`` argument of :func:`update`: the others' current behaviour, not their average over
 the whole replay) by minimising the negative log-likelihood minus ``infer_entropy`` (lambda)
 times the entropy. Agent i's target
-then uses the approximations' means for the other agents,
+then uses the means of the approximations' targets mu_hat'_i^j for the other agents (eq. 8's
+primes: copies soft-updated by ``tau`` as the target actors are, so that the target moves as
+slowly as it does without inference),
 
-    y = r_i + gamma * (1 - terminated) * Q'_i(x', mu_hat_i^1(o'_1), .., mu'_i(o'_i), .., mu_hat_i^N(o'_N))
+    y = r_i + gamma * (1 - terminated) * Q'_i(x', mu_hat'_i^1(o'_1), .., mu'_i(o'_i), .., mu_hat'_i^N(o'_N))
 
 so it never reads the other agents' true policies (:func:`inference_error`, outside the
 update, reads them to log how far the approximations are).
@@ -217,11 +219,13 @@ def _agent_update(
     info = {}
 
     approx, approx_opt = state.approx, state.approx_opt
-    if config.infer_policies:  # eq. 8: the others' approximations, its own target actor
+    target_approx = state.target_approx
+    if config.infer_policies:  # eq. 8: the others' target approximations, its own target actor
         approx, approx_opt, info["infer_loss"] = fit_approximations(
             config.hidden, optimizers(config)[0], config.infer_entropy, approx, approx_opt, agent, recent
         )
-        inferred = approx_actions(config.hidden, approx, joint.next_obs)[0]
+        inferred = approx_actions(config.hidden, target_approx, joint.next_obs)[0]
+        target_approx = _select(due, polyak(target_approx, approx, config.tau), target_approx)
         own = own_target_action(
             networks(config)[0], config.ensemble, target_actors, agent, joint.next_obs, joint.policy
         )
@@ -247,7 +251,16 @@ def _agent_update(
     )(active, (actor, actor_opt_state), (state.actor, state.actor_opt))
 
     new_state = _finish(
-        config, state, actor, actor_opt_state, critic, critic_opt_state, due, approx=approx, approx_opt=approx_opt
+        config,
+        state,
+        actor,
+        actor_opt_state,
+        critic,
+        critic_opt_state,
+        due,
+        approx=approx,
+        approx_opt=approx_opt,
+        target_approx=target_approx,
     )
     info.update(critic_loss=c_loss, actor_loss=a_loss.mean(), q_mean=jnp.mean(q), td_loss=td.reshape(weights.shape))
     return new_state, info
