@@ -143,6 +143,11 @@ def test_render_drives_the_policy_behind_the_safety_layer_with_shield(tmp_path, 
             ["train", "--preset", "anysize", "--entity-dim", "0"],
             "--entity-dim must be >= 1 (each token's width), got 0",
         ),
+        (
+            ["train", "--preset", "anysize", "--episodes", "100000", "--out", "runs/a"],
+            "--episodes 100000 goes past --anneal-episodes 80000, where the learning rates reach 0: the last 20000 "
+            "episodes per seed would train nothing; give --anneal-episodes >= 100000",
+        ),
         (["reproduce", "--algorithms"], "--algorithms: give at least one of ddpg, maddpg"),
         # an unset shell variable: not the current folder
         (["train", "--out", ""], "--out was given an empty value, most likely an unset shell variable"),

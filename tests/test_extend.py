@@ -109,14 +109,20 @@ def test_a_finished_run_extended_warms_its_emptied_replay_up_again(finished, tin
     assert [r["seed"] for r in rows] == [0, 1] * 3
 
 
-def test_an_on_policy_run_extended_equals_one_trained_to_the_new_length_at_once(tiny_ppo_config, tmp_path):
+def test_an_on_policy_run_extended_equals_one_trained_to_the_new_length_at_once(tiny_ppo_config, tmp_path, capsys):
     """MAPPO keeps no replay and its schedules count absolute episodes (here the learning rates
-    decay to 0 over 300 episodes): a finished 200-episode run extended to 400 is the 400-episode run."""
-    config = with_options(tiny_ppo_config, {"anneal_episodes": 300, "episodes": 200})
+    decay to 0 over 400 episodes): a finished 200-episode run extended to 400 is the 400-episode
+    run. Extended past the horizon (500), it is refused: those episodes would train at rate 0."""
+    config = with_options(tiny_ppo_config, {"anneal_episodes": 400, "episodes": 200})
     train(config, out=tmp_path, progress=False)
     assert main(["train", "--resume", str(tmp_path), "--episodes", "400"]) == 0
     at_once = train(dataclasses.replace(config, episodes=400), progress=False)
     assert timeless(read_metrics(tmp_path / "metrics.csv")) == timeless(at_once.metrics)
+    before = (tmp_path / "metrics.csv").read_text()
+    assert main(["train", "--resume", str(tmp_path), "--episodes", "500"]) == 2
+    err = capsys.readouterr().err
+    assert "--episodes 500 goes past --anneal-episodes 400" in err and err.count("\n") == 1, err
+    assert (tmp_path / "metrics.csv").read_text() == before
 
 
 @pytest.mark.parametrize(

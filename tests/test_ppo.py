@@ -282,7 +282,7 @@ def test_a_failed_rover_is_out_of_the_policys_samples_and_the_value_clip_is_cent
 
 
 # IPPO with the options the presets leave off (MAPPO with the preset's options runs elsewhere)
-IPPO_OPTIONS = {"algo": "ippo", "value_clip": 0.2, "value_norm": False, "anneal_episodes": 160}
+IPPO_OPTIONS = {"algo": "ippo", "value_clip": 0.2, "value_norm": False, "anneal_episodes": 200}
 
 
 @pytest.fixture(scope="module")

@@ -210,6 +210,16 @@ def test_jobs_train_a_sweep_side_by_side_to_the_numbers_of_one_process(finished,
         ({"scenarios": ["paper-2", "paper-2"], "settings": {"a": {}}}, "scenarios must each be given once"),
         # a value the config refuses names the file and the setting it came from
         ({"settings": {"a": {"beta": 2.0}}}, "bad.yaml': setting 'a' on paper-3: --beta must be in [0, 1]"),
+        # what training refuses too, before the first run trains
+        (
+            {
+                "preset": "anysize",
+                "scenarios": ["paper-2..3"],
+                "episodes": 2000,
+                "settings": {"a": {"anneal_episodes": 1000}},
+            },
+            "setting 'a' on paper-2..3: --episodes 2000 goes past --anneal-episodes 1000",
+        ),
     ],
 )
 def test_bad_sweep_files_are_one_line_and_exit_2(spec, message, tmp_path, capsys):

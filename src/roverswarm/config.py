@@ -257,6 +257,15 @@ def validate(config: TrainConfig) -> EnvParams:
     return params
 
 
+def validate_training(config: TrainConfig) -> EnvParams:
+    """:func:`validate`, and what training refuses besides (the family's
+    :attr:`~roverswarm.learners.base.Family.check_training`), which a run folder written
+    before may hold and still load and evaluate. Returns the env params."""
+    params = validate(config)
+    learner_family(config.learner.algo).check_training(config)
+    return params
+
+
 # ----------------------------------------------------------------------------- options and JSON
 
 

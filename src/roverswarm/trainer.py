@@ -23,7 +23,15 @@ import numpy as np
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from tensorboardX import SummaryWriter
 
-from roverswarm.config import RESUME_CHANGES, TrainConfig, config_to_json, fields_by_name, validate, with_mission_text
+from roverswarm.config import (
+    RESUME_CHANGES,
+    TrainConfig,
+    config_to_json,
+    fields_by_name,
+    validate,
+    validate_training,
+    with_mission_text,
+)
 from roverswarm.env.mars import EnvParams
 from roverswarm.errors import RunStopped, require
 from roverswarm.learners import learner_family
@@ -102,7 +110,7 @@ def train(
     """
     if config.mission is not None:  # kept absolute and with its content: resume and evaluate need not find the file
         config = with_mission_text(config)
-    params = validate(config)
+    params = validate_training(config)
     check_training_memory(config, params)  # networks, replay, rollouts and minibatches, before any is allocated
     require(out is not None or not resume, "resume=True needs the run folder (--out) to resume")
     require(

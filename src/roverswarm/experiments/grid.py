@@ -17,7 +17,7 @@ from typing import Callable
 from rich.console import Console
 from rich.live import Live
 
-from roverswarm.config import TrainConfig, validate
+from roverswarm.config import TrainConfig, validate_training
 from roverswarm.errors import RunStopped, UserError
 from roverswarm.experiments.arms import GridRun, ReproduceConfig, check_evaluations, plan, status
 from roverswarm.experiments.live import Summary
@@ -31,7 +31,7 @@ def run_grid(config: ReproduceConfig, base: TrainConfig | None = None, live: boo
     runs = plan(config, base)
     for run in runs:  # every run checked, its memory too, before the first trains
         try:  # its messages name the command line's flags: say which arm (a --variants one too) set it
-            params = validate(run.config)
+            params = validate_training(run.config)
         except UserError as error:
             raise UserError(f"arm '{run.algorithm}' on {run.scenario}: {error}") from None
         check_training_memory(run.config, params)

@@ -43,7 +43,7 @@ import tyro
 from rich.console import Console
 from rich.live import Live
 
-from roverswarm.config import validate, with_options
+from roverswarm.config import validate_training, with_options
 from roverswarm.env.scenarios import scenario_sizes
 from roverswarm.errors import UserError, require
 from roverswarm.experiments.arms import Backend, GridRun, check_backend, check_evaluations, episodes_done, status
@@ -141,7 +141,7 @@ def load_sweep(path: Path, out: Path) -> list[GridRun]:
             base = with_options(PRESETS[start], common, f"sweep file '{path}'")
             config = with_options(dataclasses.replace(base, scenario=scenario), options, f"setting '{name}'")
             try:  # its messages name the command line's flags: say where the value came from
-                params = validate(config)
+                params = validate_training(config)
             except UserError as error:
                 raise UserError(f"sweep file '{path}': setting '{name}' on {scenario}: {error}") from None
             check_memory(training_parts(config, params), f"setting '{name}' on {scenario}")

@@ -103,6 +103,9 @@ class Family:
     """The options (leaf field names of the config) only some families read, that this one reads."""
     misfit: str
     """Why another family's option does not apply to this one's ``{algo}``, for the error."""
+    check_training: Callable[[Any], None] = lambda config: None
+    """config -> None: what training refuses, else :class:`UserError`, beyond :attr:`check`:
+    a run folder written before the rule may hold it, and must still load (nothing by default)."""
 
 
 def no_replay(config: Any, params: EnvParams) -> tuple[int, int, int]:

@@ -308,6 +308,18 @@ def _act(acting: tuple[AlgoConfig, PPOConfig], weights, obs, plan) -> jax.Array:
     return act(*acting, weights[0], obs)
 
 
+def check_training(config) -> None:
+    """Episodes past ``--anneal-episodes`` would train at learning rate 0: refused (an
+    extended run keeps its own horizon: docs/training.md#extending-a-run)."""
+    episodes, anneal = config.episodes, config.ppo.anneal_episodes
+    require(
+        not anneal or episodes <= anneal,
+        f"--episodes {episodes} goes past --anneal-episodes {anneal}, where the learning rates reach 0: the last "
+        f"{episodes - anneal} episodes per seed would train nothing; give --anneal-episodes >= {episodes} "
+        f"(or 0: constant rates) with it, or at most --episodes {anneal} to extend a run annealed over {anneal}",
+    )
+
+
 def _view(acting: tuple[AlgoConfig, PPOConfig]):
     nets = policy_networks(*acting)
     return nets.observe if nets.any_size else None
@@ -330,5 +342,6 @@ FAMILY = Family(
     replay_bytes=no_replay,
     options=frozenset(PPO_USES + tuple(f.name for f in dataclasses.fields(PPOConfig))),
     misfit="--algo {algo} learns on-policy (start from --preset {algo})",
+    check_training=check_training,
 )
 """MAPPO and IPPO: PPO with one shared actor and a centralised or local value."""
