@@ -148,11 +148,24 @@ def test_render_drives_the_policy_behind_the_safety_layer_with_shield(tmp_path, 
             "--episodes 100000 goes past --anneal-episodes 80000, where the learning rates reach 0: the last 20000 "
             "episodes per seed would train nothing; give --anneal-episodes >= 100000",
         ),
-        (["reproduce", "--algorithms"], "--algorithms: give at least one of ddpg, maddpg"),
+        (["reproduce", "--algorithms"], "--algorithms was given no value"),
         # an unset shell variable: not the current folder
         (["train", "--out", ""], "--out was given an empty value, most likely an unset shell variable"),
         (["train", "--out="], "--out was given an empty value, most likely an unset shell variable"),
         (["evaluate", " "], "an empty argument after evaluate, most likely an unset shell variable"),
+        # a value tyro cannot convert, for options defaulting to None and for lists: one plain line
+        (["reproduce", "--seeds", "abc"], "--seeds must be an integer (or None: the default), got 'abc'"),
+        (["reproduce", "--alpha", "x"], "--alpha must be a number (or None: the default), got 'x'"),
+        (["train", "--hidden", "64", "64.5"], "--hidden must be a list of integers, got '64', '64.5'"),
+        (
+            ["reproduce", "--episodes", "40"],
+            "--episodes must be a positive multiple of 1000 (the episodes between the grid's metrics rows; 500 "
+            "with --quick), got 40",
+        ),
+        # a list option with nothing after it (an unset shell variable): not its default
+        (["reproduce", "--variants", "--quick"], "--variants was given no value, most likely an unset shell variable"),
+        (["reproduce", "--scenarios"], "--scenarios was given no value"),
+        (["train", "--hidden", "--episodes", "20"], "--hidden was given no value"),
         (
             ["reproduce", "--variants", "a:alpha=1,alpha=2"],
             "--variants: 'alpha' is given twice in 'a:alpha=1,alpha=2'",
@@ -164,6 +177,15 @@ def test_bad_input_is_one_line_and_exit_code_2(argv, message, capsys, tmp_path, 
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_a_refused_forced_grid_keeps_the_earlier_timings(tmp_path, capsys):
+    """``reproduce --force`` deletes the earlier grid's timings only once the new grid is
+    checked: refused, it leaves them."""
+    (tmp_path / "timing.csv").write_text("scenario,arm,chunk,seconds_per_1000\n")
+    assert main(["reproduce", "--force", "--seeds", "0", "--out", str(tmp_path)]) == 2
+    assert "--seeds must be >= 1" in capsys.readouterr().err
+    assert (tmp_path / "timing.csv").read_text() == "scenario,arm,chunk,seconds_per_1000\n"
 
 
 def test_an_output_that_cannot_be_written_is_refused_before_the_episode(tmp_path, capsys, monkeypatch):

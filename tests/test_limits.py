@@ -5,14 +5,16 @@ from __future__ import annotations
 import dataclasses
 import json
 import signal
+import typing
 from pathlib import Path
 
 import pytest
 import yaml
 
 from roverswarm.cli import main
-from roverswarm.config import config_to_json
+from roverswarm.config import TrainConfig, config_from_json, config_to_json, validate
 from roverswarm.errors import RunStopped, UserError
+from roverswarm.presets import MAPPO
 from roverswarm.trainer import train
 
 MISSION = str(Path(__file__).parent.parent / "examples" / "mission.yaml")
@@ -55,6 +57,41 @@ def test_a_wrong_typed_sweep_value_is_refused_before_training(top, setting, mess
     path.write_text(yaml.safe_dump({"scenarios": ["paper-2"], **top, "settings": {"a": setting}}))
     refused(["sweep", str(path), "--out", str(tmp_path / "out")], message, capsys)
     assert not (tmp_path / "out").exists()
+
+
+def _literal_fields(config, path=()):
+    """(path of field names, allowed values) of every ``Literal`` field of ``config``, nested too."""
+    hints = typing.get_type_hints(type(config))
+    for field in dataclasses.fields(config):
+        value = getattr(config, field.name)
+        if dataclasses.is_dataclass(value):
+            yield from _literal_fields(value, (*path, field.name))
+        elif typing.get_origin(hints[field.name]) is typing.Literal:
+            yield (*path, field.name), typing.get_args(hints[field.name])
+
+
+def test_every_choice_outside_its_values_is_refused_by_name():
+    """A value of a ``Literal`` field (``network``, ``algo``, ``replay``...) outside its choices,
+    as a sweep file or an edited config.json can hold it, is refused naming the option; the
+    type check leaves the values to validate(), which must know every such field."""
+    fields = list(_literal_fields(TrainConfig()))
+    assert len(fields) >= 6, fields
+    for path, allowed in fields:
+        inner = {path[-1]: "nonsense"}
+        for name in reversed(path[:-1]):
+            inner = {name: inner}
+        base = MAPPO if path[0] == "ppo" else TrainConfig()  # each option where it applies
+        config = config_from_json(json.dumps(merge(json.loads(config_to_json(base)), inner)))
+        with pytest.raises(UserError, match=f"--{path[-1].replace('_', '-')} must be") as error:
+            validate(config)
+        assert all(str(value) in str(error.value) for value in allowed), (path, error.value)
+
+
+def merge(base: dict, change: dict) -> dict:
+    """``base`` with the nested ``change`` written over it."""
+    return {
+        k: merge(v, change[k]) if isinstance(v, dict) and k in change else change.get(k, v) for k, v in base.items()
+    }
 
 
 def test_a_wrong_typed_config_json_is_refused_by_every_command(tiny_config, tmp_path, capsys):

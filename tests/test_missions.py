@@ -58,8 +58,10 @@ def with_change(change) -> dict:
         (lambda d: d["traps"][0].update(radius=-0.1), "traps[0] radius: must be a positive number from 1.2e-38 to"),
         (
             lambda d: d["pois"][1].update(radius=0),
-            "pois[1] radius: must be a positive number from 1.2e-38 to 3.4e+38, got 0",
+            "pois[1] radius: must be a positive number from 1.2e-38 to 1.0e+04, got 0",
         ),
+        # squared distances across the map would overflow float32 (the oracle failed with a traceback)
+        (lambda d: d.update(map_size=1e20), "map_size: must be a positive number from 1.2e-38 to 1.0e+04, got 1e+20"),
         (lambda d: d["traps"][0].update(radius=1e-300), "traps[0] radius: must be a positive number"),  # 0 as float32
         (lambda d: d["pois"][0].update(radius=1e39), "pois[0] 'a' radius: must be a positive number"),  # inf as float32
         (lambda d: d["pois"][1].pop("position"), "pois[1]: missing field 'position'"),

@@ -278,6 +278,19 @@ def test_resume_with_a_different_config_is_refused(unbroken, capsys):
     assert "already holds a run" in capsys.readouterr().err
 
 
+def test_a_new_run_does_not_overwrite_another_commands_metrics(capsys, tmp_path):
+    """A folder holding a mission's outputs (metrics.csv, no config.json) is refused before
+    anything is written there."""
+    out = tmp_path / "mission"
+    out.mkdir()
+    (out / "metrics.csv").write_text("episode,reward\n0,1.5\n")
+    assert main(["train", "--episodes", "20", "--log-every", "20", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "holds another command's metrics.csv" in err and err.count("\n") == 1
+    assert sorted(p.name for p in out.iterdir()) == ["metrics.csv"]
+    assert (out / "metrics.csv").read_text() == "episode,reward\n0,1.5\n"
+
+
 def test_a_folder_being_written_is_refused_and_a_stale_lock_is_taken_over(tiny_config, tmp_path, capsys):
     out = tmp_path / "run"
     out.mkdir()

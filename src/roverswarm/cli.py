@@ -8,7 +8,9 @@ A :class:`roverswarm.errors.UserError` ends the command with one line on stderr 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
+import re
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -288,6 +290,13 @@ def _value_error(text: str) -> str | None:
     for said, kind in conversions.items():
         if message.startswith(said):
             return f"{option} must be {kind}, got {message.removeprefix(said)}"
+    optional = re.fullmatch(r"no type matching \{None\}\|(INT|FLOAT) could be instantiated from \['(.*)'\]\.?", message)
+    if optional:  # an option whose default is None (the preset's value)
+        kind = "an integer" if optional[1] == "INT" else "a number"
+        return f"{option} must be {kind} (or None: the default), got {optional[2]!r}"
+    listed = re.fullmatch(r"Could not find valid parse for arguments: \[(.*)\]", message)
+    if listed:  # a list of integers (--hidden)
+        return f"{option} must be a list of integers, got {listed[1]}"
     return f"{option}: {message}"
 
 
@@ -304,6 +313,23 @@ def _check_not_empty(argv: list[str]) -> None:
         else:
             continue
         raise UserError(f"{what}, most likely an unset shell variable: give the value itself")
+
+
+def _check_lists_given(cmd, argv: list[str]) -> None:
+    """Refuses a list option given with no value (``--variants`` followed by nothing, as an
+    unset shell variable leaves it), which tyro takes as the empty default: a silent change of
+    what runs (``reproduce --variants`` trained the default arms)."""
+    for name, value in _leaves(cmd):
+        flag = "--" + name.replace("_", "-")
+        if value == () and flag in argv:
+            raise UserError(f"{flag} was given no value, most likely an unset shell variable: give at least one")
+
+
+def _leaves(obj):
+    """(field name, value) of every field of a (nested) dataclass."""
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        yield from _leaves(value) if dataclasses.is_dataclass(value) else [(f.name, value)]
 
 
 def _parse(commands: tuple, argv: list[str]):
@@ -328,6 +354,7 @@ def _parse(commands: tuple, argv: list[str]):
             raise
         raise UserError(line) from None
     sys.stderr.write(captured.getvalue())
+    _check_lists_given(cmd, argv)
     return cmd
 
 

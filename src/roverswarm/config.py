@@ -16,7 +16,7 @@ from pathlib import Path
 
 import tyro
 
-from roverswarm.algos.learner import AlgoConfig
+from roverswarm.algos.learner import NETWORKS, AlgoConfig
 from roverswarm.algos.ppo import PPOConfig
 from roverswarm.buffers.base import ReplayConfig
 from roverswarm.env.entities import POI_ORDERS
@@ -214,6 +214,7 @@ def validate(config: TrainConfig) -> EnvParams:
     ):
         require(not on or mixed, f"--{option} needs a range of swarm sizes, such as --scenario paper-2..10")
     entity = config.learner
+    require(entity.network in NETWORKS, f"--network must be one of {', '.join(NETWORKS)}, got {entity.network!r}")
     require(entity.entity_dim >= 1, f"--entity-dim must be >= 1 (each token's width), got {entity.entity_dim}")
     require(
         entity.entity_heads >= 1 and entity.entity_dim % entity.entity_heads == 0,

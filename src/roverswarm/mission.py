@@ -46,7 +46,8 @@ class MissionRunConfig:
     """ROVER@STEP: freeze that rover from that step on."""
     episodes: int = 1
     """Episodes to run (they differ when the mission has a release zone or the policy is
-    random); files show episode 0."""
+    random): trajectories.csv and metrics.csv hold every one; metrics.md details episode 0
+    and sums up all of them; routes.png and the animation show episode 0."""
     seed: int = 0
     """Seed of the episodes (release-zone starts, random policy)."""
     policy_seed: int = 0

@@ -218,6 +218,12 @@ def _train(
                 not (out / CHECKPOINT).exists(),
                 f"'{out}' already holds a run; continue it with --resume or choose another --out",
             )
+            # a mission's outputs, say: a run (even one stopped before its checkpoint) writes config.json first
+            require(
+                not (out / METRICS).exists() or (out / CONFIG).exists(),
+                f"'{out}' holds another command's {METRICS} (no {CONFIG}: not a training run), which training "
+                "would overwrite; choose another --out",
+            )
             out.mkdir(parents=True, exist_ok=True)
         write_text(out / CONFIG, config_to_json(config))
     writer = SummaryWriter(str(out / "tb")) if out is not None else None

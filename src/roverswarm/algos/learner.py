@@ -8,6 +8,7 @@ Parameters are stacked on a leading group axis ([N * K] actors, [N] critics; [1]
 
 from __future__ import annotations
 
+import typing
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -24,6 +25,8 @@ from roverswarm.env.entities import nearest_width
 from roverswarm.env.mars import ACTION_SIZE, OWN_POSITION, EnvParams, observation_size, other_rovers
 
 Algo = Literal["maddpg", "ddpg", "mappo", "ippo"]
+Network = Literal["mlp", "entity", "nearest"]
+NETWORKS = typing.get_args(Network)
 """The ``--algo`` choices; :data:`roverswarm.learners.FAMILIES` maps each to its learner family."""
 
 
@@ -90,7 +93,7 @@ class AlgoConfig:
     """Standardise observations by a running mean and variance (kept in checkpoints)."""
     reward_scale: float = 1.0
     """Rewards are multiplied by this before the critic's targets."""
-    network: Literal["mlp", "entity", "nearest"] = "mlp"
+    network: Network = "mlp"
     """`mlp`: networks on the flat view, tied to the swarm size they trained on; `entity`:
     attention over the entity view (other rovers, POIs, traps as tokens, no rover ids);
     `nearest`: an MLP over the --entity-nearest K nearest of each type, nearest first. The last

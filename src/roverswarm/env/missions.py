@@ -94,12 +94,19 @@ def _number(value: Any) -> float | None:
 _FLOAT32_RANGE = (float(np.finfo(np.float32).tiny), float(np.finfo(np.float32).max))
 
 
-def _positive(value: Any, where: str) -> float:
-    """A positive number that float32 (the environment's arrays) holds: neither 0 nor inf there."""
+MAX_MAP_SIZE = 1e4
+"""The largest ``map_size`` (and radius): squared distances across it stay finite in float32
+(past about 1.8e19 they overflow and the oracle's matching fails), and float32 still resolves
+positions there to about 1e-3, well under a rover's radius."""
+
+
+def _positive(value: Any, where: str, most: float = _FLOAT32_RANGE[1]) -> float:
+    """A positive number that float32 (the environment's arrays) holds, neither 0 nor inf there,
+    and at most ``most``."""
     number = _number(value)
     require(
-        number is not None and _FLOAT32_RANGE[0] <= number <= _FLOAT32_RANGE[1],
-        f"{where}: must be a positive number from {_FLOAT32_RANGE[0]:.1e} to {_FLOAT32_RANGE[1]:.1e}, got {value!r}",
+        number is not None and _FLOAT32_RANGE[0] <= number <= most,
+        f"{where}: must be a positive number from {_FLOAT32_RANGE[0]:.1e} to {most:.1e}, got {value!r}",
     )
     return number
 
@@ -125,7 +132,7 @@ def _entries(data: dict, key: str, size: float) -> tuple[list[str], np.ndarray, 
         index[name] = i
         names.append(name)
         positions.append(_point(entry["position"], f"{label} position", size))
-        radii.append(_positive(entry.get("radius", _DEFAULT_RADIUS[key]), f"{label} radius"))
+        radii.append(_positive(entry.get("radius", _DEFAULT_RADIUS[key]), f"{label} radius", MAX_MAP_SIZE))
     return names, np.array(positions, np.float32).reshape(-1, 2), np.array(radii, np.float32)
 
 
@@ -254,7 +261,7 @@ def _check_observable(
 def parse_mission(data: Any, name: str = "mission") -> Mission:
     """A :class:`Mission` from the parsed content of a mission file (raises :class:`UserError`)."""
     _fields(data, "mission file", {"rovers", "pois"}, _TOP_FIELDS - {"rovers", "pois"})
-    size = _positive(data.get("map_size", 1.0), "map_size")
+    size = _positive(data.get("map_size", 1.0), "map_size", MAX_MAP_SIZE)
     steps = data.get("episode_length", 25)
     require(
         isinstance(steps, int) and not isinstance(steps, bool) and 1 <= steps < 2**31,

@@ -110,7 +110,8 @@ class ReproduceConfig(Backend):
     seeds: int | None = None
     """Seeds per run, vmapped together (default 5; 2 with --quick)."""
     episodes: int | None = None
-    """Training episodes per seed (default the paper's 60000; 2000 with --quick)."""
+    """Training episodes per seed (default the paper's 60000; 2000 with --quick); a multiple of
+    1000 (500 with --quick), the episodes between metrics rows."""
     seed: int = 0
     """Base random seed of every run (the same seeds for every learner)."""
     preset: Literal["reference", "default", "swarm"] = "reference"
@@ -247,6 +248,12 @@ def plan(config: ReproduceConfig, base: TrainConfig | None = None) -> list[GridR
     require(len(config.algorithms) > 0, f"--algorithms: give at least one of {', '.join(get_args(Algorithm))}")
     require(len(set(config.algorithms)) == len(config.algorithms), "--algorithms: give each algorithm once")
     require(config.grid_seeds >= 1, f"--seeds must be >= 1, got {config.grid_seeds}")
+    log_every = 500 if config.quick else base.log_every
+    require(
+        config.grid_episodes >= 1 and config.grid_episodes % log_every == 0,
+        f"--episodes must be a positive multiple of {log_every} (the episodes between the grid's metrics rows"
+        f"{'' if config.quick else '; 500 with --quick'}), got {config.grid_episodes}",
+    )
     require(config.grid_time_chunks >= 0, f"--time-chunks must be >= 0, got {config.grid_time_chunks}")
     require(config.grid_eval_episodes >= 1, f"--eval-episodes must be >= 1, got {config.grid_eval_episodes}")
     check_backend(config)
@@ -276,7 +283,7 @@ def plan(config: ReproduceConfig, base: TrainConfig | None = None) -> list[GridR
                     episodes=config.grid_episodes,
                     seeds=config.grid_seeds,
                     seed=config.seed,
-                    log_every=500 if config.quick else base.log_every,
+                    log_every=log_every,
                     checkpoint_every=base.checkpoint_every,
                 ),
             )

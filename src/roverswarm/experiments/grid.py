@@ -23,6 +23,7 @@ from roverswarm.experiments.arms import GridRun, ReproduceConfig, check_evaluati
 from roverswarm.experiments.live import Summary
 from roverswarm.experiments.pool import default_jobs, train_runs
 from roverswarm.experiments.remote import run_ray
+from roverswarm.experiments.results import TIMING
 from roverswarm.limits import check_training_memory
 
 
@@ -36,10 +37,11 @@ def run_grid(config: ReproduceConfig, base: TrainConfig | None = None, live: boo
             raise UserError(f"arm '{run.algorithm}' on {run.scenario}: {error}") from None
         check_training_memory(run.config, params)
     check_evaluations(runs, config.grid_eval_episodes)
-    if config.force:
+    if config.force:  # once every run is checked: the runs, and the times taken with their settings
         for run in runs:
             if run.folder.exists():
                 shutil.rmtree(run.folder)
+        (config.out / TIMING).unlink(missing_ok=True)
     done = {run.name for run in runs if status(run) == "done"}
     todo = [run for run in runs if run.name not in done]
     summary = Summary(runs, done)

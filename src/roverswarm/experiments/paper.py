@@ -83,8 +83,6 @@ def reproduce(config: ReproduceConfig, base: TrainConfig | None = None, live: bo
 
 def _reproduce(config: ReproduceConfig, base: TrainConfig | None, live: bool) -> Path:
     start = time.perf_counter()
-    if config.force:  # timed with the grid's earlier settings, which --force replaces
-        (config.out / TIMING).unlink(missing_ok=True)
     runs = run_grid(config, base, live=live)
     timed = time_arms(config, runs)
     results = [load(run, timed) for run in runs]
