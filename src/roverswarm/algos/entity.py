@@ -157,7 +157,7 @@ class _EntityHeaded(nn.Module):
 
 
 class EntityActor(_EntityHeaded):
-    """Own [..., 4], tokens [..., M, 9], mask [..., M] -> the pre-activation action [..., 2]."""
+    """Own [..., 4], tokens [..., M, F], mask [..., M] -> the pre-activation action [..., 2]."""
 
     @nn.compact
     def __call__(self, own: jax.Array, tokens: jax.Array, mask: jax.Array) -> jax.Array:
@@ -166,7 +166,7 @@ class EntityActor(_EntityHeaded):
 
 
 class EntityValue(_EntityHeaded):
-    """Own [..., 4], tokens [..., M, 9], mask [..., M] -> the state value [...]."""
+    """Own [..., 4], tokens [..., M, F], mask [..., M] -> the state value [...]."""
 
     @nn.compact
     def __call__(self, own: jax.Array, tokens: jax.Array, mask: jax.Array) -> jax.Array:
@@ -175,7 +175,7 @@ class EntityValue(_EntityHeaded):
 
 
 class EntityCritic(_EntityHeaded):
-    """Q-value [...] of own [..., 4] with the own action [..., 2], and tokens [..., M, 9] each
+    """Q-value [...] of own [..., 4] with the own action [..., 2], and tokens [..., M, F] each
     with its rover's action ``token_actions`` [..., M, 2] (zeros for POIs and traps; see
     :func:`token_actions`), mask [..., M]."""
 
@@ -217,12 +217,12 @@ class EntityNetworks:
     """Entity networks as pure functions (jittable, vmappable; any leading axes)::
 
         init_actor(key)  / init_value(key) / init_critic(key)   -> params
-        actor(params, own [..., 4], tokens [..., M, 9], mask [..., M])      -> [..., 2]
-        value(params, own [..., 4], tokens [..., M, 9], mask [..., M])      -> [...]
-        critic(params, own [..., 4], action [..., 2], tokens [..., M, 9],
+        actor(params, own [..., 4], tokens [..., M, F], mask [..., M])      -> [..., 2]
+        value(params, own [..., 4], tokens [..., M, F], mask [..., M])      -> [...]
+        critic(params, own [..., 4], action [..., 2], tokens [..., M, F],
                token_actions [..., M, 2], mask [..., M])                    -> [...]
 
-    With a swarm's view (own [..., N, 4], tokens [..., N, M, 9], mask [..., N, M]) each
+    With a swarm's view (own [..., N, 4], tokens [..., N, M, F], mask [..., N, M]) each
     call returns every rover's output ([..., N, 2] or [..., N]); M, N, P, T may differ
     from call to call with the same params."""
 

@@ -220,7 +220,10 @@ def critic_inputs(
     Shared parameters: own-first order and, over the flat view, the one-hot index appended.
     ``critic_neighbors`` K > 0: the agent and its K nearest other rovers, nearest first, in each
     transition; of mixed swarm sizes (``rovers`` [B, N] bool: the rovers that exist), the
-    nearest that exist, then zeros where a swarm has fewer than K others."""
+    nearest that exist, then zeros where a swarm has fewer than K others. The distances are
+    those of ``obs`` as given: with --normalize-obs the standardised positions, x and y each
+    divided by its own running standard deviation (nearly equal on layouts symmetric in x and
+    y, as the paper-N layouts are; a mission stretched along one axis orders by the other)."""
     batch, n = obs.shape[:2]
     if config.algo == "ddpg":
         inputs = [obs[:, agent], actions[:, agent]]
