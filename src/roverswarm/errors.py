@@ -7,8 +7,10 @@ anything else is a bug and keeps its traceback.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import math
+from typing import Iterator
 
 
 class UserError(ValueError):
@@ -19,6 +21,16 @@ def require(condition: bool, message: str) -> None:
     """Raise :class:`UserError` with ``message`` unless ``condition`` holds."""
     if not condition:
         raise UserError(message)
+
+
+@contextlib.contextmanager
+def within(where: str) -> Iterator[None]:
+    """A :class:`UserError` raised inside is raised again with ``where: `` before its message
+    (which file, setting or run the options it names came from)."""
+    try:
+        yield
+    except UserError as error:
+        raise UserError(f"{where}: {error}") from None
 
 
 class RunStopped(RuntimeError):

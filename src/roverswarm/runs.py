@@ -22,7 +22,7 @@ import numpy as np
 
 from roverswarm.config import TrainConfig, validate
 from roverswarm.env.mars import EnvParams, count_text
-from roverswarm.errors import UserError, require, unwritable
+from roverswarm.errors import UserError, require, unwritable, within
 from roverswarm.learners import learner_family
 from roverswarm.limits import batch_part, check_memory, networks_part, open_limited, read_config
 from roverswarm.metrics import EPISODE_METRICS, reduce_metric
@@ -271,10 +271,8 @@ class Run:
         self.folder = Path(folder)
         require(holds_run(self.folder), f"'{self.folder}' holds no trained run (config.json and checkpoint.npz)")
         self.config: TrainConfig = read_config(self.folder / CONFIG)
-        try:
+        with within(f"the run in '{self.folder}': its config.json"):  # a setting this version refuses
             self.params: EnvParams = validate(self.config)
-        except UserError as error:  # a setting this version refuses (edited, or from an older one)
-            raise UserError(f"the run in '{self.folder}': its config.json: {error}") from None
         check_memory([networks_part(self.config, self.params)], f"the run in '{self.folder}'")
 
     @classmethod

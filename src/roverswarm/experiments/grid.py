@@ -18,7 +18,7 @@ from rich.console import Console
 from rich.live import Live
 
 from roverswarm.config import TrainConfig, validate_training
-from roverswarm.errors import RunStopped, UserError
+from roverswarm.errors import RunStopped, within
 from roverswarm.experiments.arms import GridRun, ReproduceConfig, check_evaluations, plan, status
 from roverswarm.experiments.live import Summary
 from roverswarm.experiments.pool import default_jobs, train_runs
@@ -31,10 +31,8 @@ def run_grid(config: ReproduceConfig, base: TrainConfig | None = None, live: boo
     """Train every run of the grid that is not finished yet; returns all runs of the grid."""
     runs = plan(config, base)
     for run in runs:  # every run checked, its memory too, before the first trains
-        try:  # its messages name the command line's flags: say which arm (a --variants one too) set it
+        with within(f"arm '{run.algorithm}' on {run.scenario}"):  # which arm (a --variants one too) set the flag
             params = validate_training(run.config)
-        except UserError as error:
-            raise UserError(f"arm '{run.algorithm}' on {run.scenario}: {error}") from None
         check_training_memory(run.config, params)
     check_evaluations(runs, config.grid_eval_episodes)
     if config.force:  # once every run is checked: the runs, and the times taken with their settings

@@ -22,7 +22,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from roverswarm.config import config_from_json, config_to_json
-from roverswarm.errors import RunStopped, UserError
+from roverswarm.errors import RunStopped, UserError, within
 from roverswarm.experiments.arms import GridRun, episodes_done, status
 from roverswarm.experiments.live import Summary
 from roverswarm.experiments.stopping import JobsStop
@@ -126,10 +126,8 @@ def run_ray(
     a run that stopped on its own, once every task has ended."""
     with contextlib.ExitStack() as locks:
         for run in runs:  # every folder first: a run already being written sends nothing
-            try:
+            with within(f"run '{run.name}'"):
                 locks.enter_context(folder_lock(run.folder))
-            except UserError as error:
-                raise UserError(f"run '{run.name}': {error}") from None
         ray = _ray()
         if not ray.is_initialized():
             ray.init(address=address, log_to_driver=False)  # sets its own SIGTERM handler: before JobsStop

@@ -45,7 +45,7 @@ from rich.live import Live
 
 from roverswarm.config import validate_training, with_options
 from roverswarm.env.scenarios import scenario_sizes
-from roverswarm.errors import UserError, require
+from roverswarm.errors import UserError, require, within
 from roverswarm.experiments.arms import Backend, GridRun, check_backend, check_evaluations, episodes_done, status
 from roverswarm.experiments.live import Summary
 from roverswarm.experiments.pool import default_jobs, train_runs
@@ -99,10 +99,8 @@ def load_sweep(path: Path, out: Path) -> list[GridRun]:
     require(isinstance(scenarios, list) and scenarios, f"sweep file '{path}': scenarios must be a non-empty list")
     for name in scenarios:
         require(isinstance(name, str), f"sweep file '{path}': scenarios must be names, got {name!r}")
-        try:
+        with within(f"sweep file '{path}'"):
             scenario_sizes(name)
-        except UserError as error:
-            raise UserError(f"sweep file '{path}': {error}") from None
     require(
         len(set(scenarios)) == len(scenarios),
         f"sweep file '{path}': scenarios must each be given once, got {', '.join(scenarios)}",
@@ -140,10 +138,8 @@ def load_sweep(path: Path, out: Path) -> list[GridRun]:
             )
             base = with_options(PRESETS[start], common, f"sweep file '{path}'")
             config = with_options(dataclasses.replace(base, scenario=scenario), options, f"setting '{name}'")
-            try:  # its messages name the command line's flags: say where the value came from
+            with within(f"sweep file '{path}': setting '{name}' on {scenario}"):  # where the flag's value came from
                 params = validate_training(config)
-            except UserError as error:
-                raise UserError(f"sweep file '{path}': setting '{name}' on {scenario}: {error}") from None
             check_memory(training_parts(config, params), f"setting '{name}' on {scenario}")
             runs.append(GridRun(scenario, name, config, Path(out) / "runs" / scenario / name))
     return runs
