@@ -453,6 +453,30 @@ def test_the_relative_change_interval_covers_the_truth_95_percent_of_the_time():
     assert 0.92 <= hits / trials <= 0.985
 
 
+def test_the_live_table_starts_a_partial_run_where_it_was_saved(base, tmp_path):
+    """A run interrupted at 200 of 400 episodes waits as "queued 200/400", and the time left
+    counts only its 200 left: one run trains 100 episodes in a minute, 300 + 200 are left."""
+    from rich.console import Console
+
+    from roverswarm.experiments.live import Summary
+
+    fresh, partial = plan(tiny_grid(tmp_path, scenarios=("paper-2",), algorithms=("ddpg", "maddpg")), base)
+    partial.folder.mkdir(parents=True)
+    write_csv(
+        partial.folder / "metrics.csv",
+        [{"seed": s, "episodes": e, "wall_seconds": 1.0} for e in (100, 200) for s in range(2)],
+    )
+    summary = Summary([fresh, partial], set())
+    summary.progress(fresh, 0)
+    summary.progress(fresh, 100)
+    summary.started = time.perf_counter() - 60
+    console = Console(record=True, width=100)
+    console.print(summary)
+    text = " ".join(console.export_text().split())  # the title wraps at the table's width
+    assert "queued │ 200/400" in text, text
+    assert "time left ~ 5 min" in text, text  # (300 + 200) episodes x 2 seeds at 200 a minute
+
+
 def test_the_live_table_shows_a_ray_task_running_once_it_reported_and_done_once_it_ended(base, tmp_path):
     """With 2 CPUs and 3 tasks sent, the third waits on the cluster: queued until its task
     reports to the board, and a run that ended is not taken back to running by a late report."""

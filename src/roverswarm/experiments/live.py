@@ -17,6 +17,7 @@ class Summary:
         self.done = set(done)
         self.ended = {r.name: episodes_done(r) for r in runs if r.name in self.done}  # fewer after a budget
         self.running: dict[str, int] = {}
+        self.saved = {r.name: episodes_done(r) for r in runs if r.name not in self.done}  # a partial run's start
         self.started = time.perf_counter()
         self.trained = 0  # seed-episodes trained by this command (for the time estimate)
 
@@ -30,9 +31,13 @@ class Summary:
         self.done.add(run.name)
         self.ended[run.name] = episodes_done(run)
 
+    def _at(self, run: GridRun) -> int:
+        """Episodes per seed a run not yet done stands at: as it reported, else as it was saved."""
+        return self.running.get(run.name, self.saved.get(run.name, 0))
+
     def __rich__(self) -> Table:
         left = [r for r in self.runs if r.name not in self.done]
-        todo = sum((r.config.episodes - self.running.get(r.name, 0)) * r.config.seeds for r in left)
+        todo = sum((r.config.episodes - self._at(r)) * r.config.seeds for r in left)
         elapsed = time.perf_counter() - self.started
         eta = f"{todo * elapsed / self.trained / 60:.0f} min" if self.trained else "-"
         head = (
@@ -44,6 +49,6 @@ class Summary:
             table.add_column(column)
         for r in self.runs:
             state = "done" if r.name in self.done else ("running" if r.name in self.running else "queued")
-            episodes = self.ended[r.name] if state == "done" else self.running.get(r.name, 0)
+            episodes = self.ended[r.name] if state == "done" else self._at(r)
             table.add_row(r.name, state, f"{episodes}/{r.config.episodes}")
         return table
