@@ -448,6 +448,18 @@ def test_mission_run_writes_routes_animation_and_metrics(tmp_path, capsys):
     assert all(r["working"] == "True" for r in csv.DictReader(open(tmp_path / "late" / "trajectories.csv")))
 
 
+def test_training_a_lone_rover_with_failures_is_refused(tmp_path, capsys):
+    """A one-rover mission with --fail-rate would fail its only rover (mission stress refuses it
+    too): one line, exit 2, nothing written."""
+    mission = tmp_path / "one.yaml"
+    mission.write_text("rovers:\n  start: [[0.0, 0.0]]\npois:\n  - position: [0.5, 0.5]\n")
+    out = tmp_path / "run"
+    assert main(["train", "--mission", str(mission), "--fail-rate", "0.5", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "--fail-rate needs at least 2 rovers (one fails, one keeps working), got 1" in err and err.count("\n") == 1
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("command", ["run", "stress"])
 def test_the_mission_commands_refuse_an_out_folder_holding_a_training_run(command, tmp_path, capsys):
     """`--policy RUN --out RUN` overwrote the run's metrics.csv, and `train --resume RUN` then found

@@ -184,6 +184,10 @@ def validate(config: TrainConfig) -> EnvParams:
     )
     require(config.size_curriculum >= 0, f"--size-curriculum must be >= 0 episodes, got {config.size_curriculum}")
     _finite(config.size_draw_power, 0, "size-draw-power")
+    require(
+        config.fail_rate == 0 or params.num_rovers >= 2,
+        f"--fail-rate needs at least 2 rovers (one fails, one keeps working), got {params.num_rovers}",
+    )
     most = max(params.num_rovers - 1, 1)
     require(
         1 <= config.fail_count <= most,

@@ -120,7 +120,8 @@ def draw_failures(key: jax.Array, params, active_rovers) -> jax.Array:
     uniform, fails at a uniform step in [0, max_steps); NEVER elsewhere. With ``fail_count`` K >
     1, k - 1 more of them, distinct and uniform, each at its own uniform step, k drawn uniformly
     in [1, min(K, active_rovers - 1)] (one keeps working), from keys of their own: the first
-    failure is drawn as with K = 1."""
+    failure is drawn as with K = 1. A lone rover would fail too: training refuses --fail-rate
+    for one rover (:func:`roverswarm.config.validate`), as ``mission stress`` does."""
     k_fails, k_rover, k_step = jax.random.split(key, 3)
     fails = jax.random.uniform(k_fails) < params.fail_rate
     index = jnp.arange(params.num_rovers)
