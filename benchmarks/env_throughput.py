@@ -8,7 +8,9 @@ them alike and their ratios hold. Four tables (``--only`` prints one):
 
 * ``mpe2``: ``paper-3`` and ``paper-5`` (N rovers, N POIs, N traps) with E = 1, 64 and 1024
   against mpe2's ``simple_spread_v3.parallel_env(N=N, max_cycles=25, continuous_actions=True)``,
-  a single environment stepped for ~2.5 s with actions from ``action_space(agent).sample()``.
+  a single environment stepped for ~2.5 s with actions from ``action_space(agent).sample()``,
+  once per N before roverswarm's columns (not rep by rep: a plain Python loop, far from the
+  ratio's target either way), its rate reused for every E.
   roverswarm's main column resets every environment at the start of an episode and scans 25
   steps of ``step_env`` (the training loop's structure); the second scans the auto-resetting
   ``step``. Ratio: roverswarm over mpe2, target at least 100 at E = 1024. mpe2 has no traps.
@@ -239,7 +241,9 @@ def mpe2_rows(reps: int, mpe2_seconds: float) -> list[dict]:
                 },
                 reps,
             )
-            rows.append({"n": n, "envs": num_envs, **rates, "mpe2": mpe2_rate, "ratio": rates["reset_step_env"] / mpe2_rate})
+            rows.append(
+                {"n": n, "envs": num_envs, **rates, "mpe2": mpe2_rate, "ratio": rates["reset_step_env"] / mpe2_rate}
+            )
 
     print("| N | E | reset per episode + step_env, steps/s | step (auto-reset) | mpe2 steps/s (one env) | ratio |")
     print("|---|---|---|---|---|---|")
@@ -272,7 +276,9 @@ def peer_rows(reps: int) -> list[dict]:
 
     print(f"roverswarm paper-N and JaxMARL MPE_simple_spread_v3, E = {envs}, steps/s (cost: reset per episode")
     print("+ step_env over step; vs JaxMARL: step over JaxMARL's step):\n")
-    print("| N | reset per episode + step_env | step | cost | step, staggered | cost | JaxMARL step | step vs JaxMARL |")
+    print(
+        "| N | reset per episode + step_env | step | cost | step, staggered | cost | JaxMARL step | step vs JaxMARL |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         jm = r.get("jaxmarl_step")
@@ -299,7 +305,9 @@ def sampler_rows(reps: int) -> list[dict]:
     rows, envs = [], max(NUM_ENVS)
 
     def resets(params):
-        return jax.jit(lambda k: jax.vmap(reset, in_axes=(0, None))(jax.random.split(k, envs), params)[1].rover_pos.sum())
+        return jax.jit(
+            lambda k: jax.vmap(reset, in_axes=(0, None))(jax.random.split(k, envs), params)[1].rover_pos.sum()
+        )
 
     for n in SAMPLER_COUNTS:
         params = paper_params(n)

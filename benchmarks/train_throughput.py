@@ -1,8 +1,10 @@
 """Training throughput: seconds per 1000 episodes, and how much of it is the update itself.
 
-For N = 2..5 (``paper-N``), both algorithms and both presets (``default``: one update per 25
-environment steps on batches of 256, 2x128 networks; ``reference``: one update per 100 steps
-on batches of 1024, 2x64 networks), one seed, 20 parallel environments, replay 1e6, in one run:
+For N = 2..5 (``paper-N``), both algorithms and the off-policy presets of one swarm size
+(``default``: one update per 25 environment steps on batches of 256, 2x128 networks;
+``reference``: one update per 100 steps on batches of 1024, 2x64 networks; ``swarm``: shared
+networks, twin critics; ``anysize-ddpg``, which trains on a range of sizes, has
+``anysize_offpolicy.py``), one seed, 20 parallel environments, replay 1e6, in one run:
 
 * ``s/1000 ep``: wall seconds of one jitted training chunk of 1000 episodes (environment,
   replay writes and samples, updates), timed after the warm-up so every chunk has all its
@@ -61,6 +63,7 @@ from roverswarm.buffers import compact
 from roverswarm.buffers.base import Transition
 from roverswarm.config import TrainConfig, validate, with_options
 from roverswarm.env.mars import ACTION_SIZE, observation_size
+from roverswarm.episodes import sizes_of
 from roverswarm.experiments.timing import chunk_seconds, fill, median_seconds, paired_ratio
 from roverswarm.jaxcache import enable_compilation_cache
 from roverswarm.learners import FAMILIES, onpolicy
@@ -138,13 +141,19 @@ def replay_seconds(config: TrainConfig, iterations: int = 20) -> tuple[float, fl
     return median_seconds(work, repeats=7) / (iterations * updates), reranking
 
 
+def main_presets() -> list[str]:
+    """The presets of the main table: the off-policy ones of one swarm size (``anysize-ddpg``
+    trains on a range of sizes: ``anysize_offpolicy.py``)."""
+    return [name for name, p in PRESETS.items() if FAMILIES[p.learner.algo].replay and sizes_of(p) is None]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="N = 3 only")
     parser.add_argument("--rovers", type=int, nargs="+", default=[2, 3, 4, 5], help="swarm sizes N to measure")
     parser.add_argument("--chunks", type=int, default=3, help="timed chunks per configuration")
     parser.add_argument("--only", choices=["main", "extensions", "ppo"], help="print one of the three tables")
-    replay_presets = [name for name, preset in PRESETS.items() if FAMILIES[preset.learner.algo].replay]
+    replay_presets = main_presets()
     parser.add_argument(
         "--preset", choices=replay_presets, nargs="+", default=replay_presets, help="presets of the main table"
     )

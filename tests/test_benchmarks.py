@@ -10,7 +10,9 @@ from pathlib import Path
 import jax
 
 from roverswarm.algos.ppo import init_ppo, update_minibatch
+from roverswarm.config import validate, with_options
 from roverswarm.env.mars import observation_size
+from roverswarm.presets import PRESETS
 
 
 def benchmark(name: str):
@@ -41,3 +43,13 @@ def test_the_anysize_update_equals_its_plain_jax_numpy_reference():
     assert bench.largest_diff(nets(after), nets(state)) > 1e-4  # the update moves the networks
     assert bench.largest_diff(nets(after), nets(after_ref)) < 1e-6
     assert bench.largest_diff(parts, parts_ref) < 1e-5
+
+
+def test_the_throughput_tables_defaults_are_presets_of_one_swarm_size():
+    """train_throughput.py's main table sets ``paper-N`` on each default preset and algorithm:
+    every one must take it (a preset trained on a range of sizes crashed the table)."""
+    presets = benchmark("train_throughput").main_presets()
+    assert {"default", "reference"} <= set(presets)
+    for name in presets:
+        for algo in ("maddpg", "ddpg"):
+            validate(with_options(PRESETS[name], dict(scenario="paper-5", algo=algo)))

@@ -415,6 +415,26 @@ def holm_rejects(p_values: list[float], level: float) -> set[int]:
     return rejected
 
 
+@pytest.mark.parametrize(
+    "changes, p_holm, word",
+    [
+        ((+8, -5, -4, +9), (0.004, 0.5, 0.5, 0.3), "not supported"),  # the one gain shown is at N = 2
+        ((+1, +2, +3, +9), (0.9, 0.9, 0.9, 0.01), "supported"),
+        ((+1, +2, +3, +9), (0.01, 0.01, 0.01, 0.2), "not supported"),  # nothing shown at N = 5
+        ((+9, +3, +2, +1), (0.9, 0.9, 0.9, 0.01), "not supported"),  # shown at N = 5, but falling
+    ],
+)
+def test_the_verdict_on_growth_needs_a_gain_shown_at_the_largest_n(changes, p_holm, word):
+    from roverswarm.experiments.report import verdicts
+
+    rows = [
+        dict(arm="MADDPG + optimizer", against="MADDPG", rovers=n, reward_change_pct=c, reward_p=p, reward_p_holm=p)
+        for n, c, p in reversed(list(zip((2, 3, 4, 5), changes, p_holm)))  # in any order
+    ]
+    (line,) = verdicts([], rows)
+    assert line.startswith(f"- *MADDPG + optimizer helps more as N grows*: {word} by our runs"), line
+
+
 def test_holm_adjusted_p_values_reject_what_holms_procedure_rejects():
     assert holm([0.01, 0.04, 0.03, float("nan")])[:3] == pytest.approx([0.03, 0.06, 0.06])
     assert np.isnan(holm([0.01, float("nan")])[1]) and holm([]).shape == (0,)

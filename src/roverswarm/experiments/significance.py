@@ -25,10 +25,13 @@ def relative_change(treated: np.ndarray, control: np.ndarray) -> tuple[float, fl
     vt, vc = treated.var(ddof=1) / len(treated), control.var(ddof=1) / len(control)
     if vt + vc == 0:  # no spread: as paired_p says
         return change, change, change, 0.0 if change else 1.0
-    df = (vt + vc) ** 2 / (vt**2 / (len(treated) - 1) + vc**2 / (len(control) - 1))
     ratio = treated.mean() / control.mean()
-    se = np.sqrt(vt + ratio**2 * vc) / (100.0 * scale)  # delta method for mean_t / mean_c
-    half = 100.0 * stats.t.ppf(0.975, df) * se
+    vr = ratio**2 * vc  # the control's share of the ratio's variance (delta method for mean_t / mean_c)
+    if vt + vr > 0:
+        df = (vt + vr) ** 2 / (vt**2 / (len(treated) - 1) + vr**2 / (len(control) - 1))  # Welch's, of that sum
+        half = 100.0 * stats.t.ppf(0.975, df) * np.sqrt(vt + vr) / (100.0 * scale)
+    else:  # a treated arm at 0 without spread: the ratio is known exactly
+        half = 0.0
     p = stats.ttest_ind(treated, control, equal_var=False).pvalue
     return change, change - half, change + half, float(p)
 
