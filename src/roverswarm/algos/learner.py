@@ -25,9 +25,11 @@ from roverswarm.env.entities import nearest_width
 from roverswarm.env.mars import ACTION_SIZE, OWN_POSITION, EnvParams, observation_size, other_rovers
 
 Algo = Literal["maddpg", "ddpg", "mappo", "ippo"]
+"""The ``--algo`` choices; :data:`roverswarm.learners.FAMILIES` maps each to its learner family."""
+
 Network = Literal["mlp", "entity", "nearest"]
 NETWORKS = typing.get_args(Network)
-"""The ``--algo`` choices; :data:`roverswarm.learners.FAMILIES` maps each to its learner family."""
+"""The ``--network`` choices (:attr:`AlgoConfig.network`), checked by :func:`roverswarm.config.validate`."""
 
 
 @dataclass(frozen=True)
