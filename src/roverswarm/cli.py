@@ -8,7 +8,6 @@ A :class:`roverswarm.errors.UserError` ends the command with one line on stderr 
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import io
 import re
 import sys
@@ -24,7 +23,7 @@ from rich.segment import Segment
 from rich.table import Table
 
 from roverswarm.animation import RenderConfig
-from roverswarm.config import TrainConfig, resumed_config
+from roverswarm.config import TrainConfig, fields_by_name, resumed_config
 from roverswarm.errors import RunStopped, UserError, require
 from roverswarm.evaluate import EvaluateConfig
 from roverswarm.experiments import ReproduceConfig, reproduce
@@ -319,17 +318,10 @@ def _check_lists_given(cmd, argv: list[str]) -> None:
     """Refuses a list option given with no value (``--variants`` followed by nothing, as an
     unset shell variable leaves it), which tyro takes as the empty default: a silent change of
     what runs (``reproduce --variants`` trained the default arms)."""
-    for name, value in _leaves(cmd):
+    for name, value in fields_by_name(cmd).items():  # the flags: one per leaf field, prefixes omitted
         flag = "--" + name.replace("_", "-")
         if value == () and flag in argv:
             raise UserError(f"{flag} was given no value, most likely an unset shell variable: give at least one")
-
-
-def _leaves(obj):
-    """(field name, value) of every field of a (nested) dataclass."""
-    for f in dataclasses.fields(obj):
-        value = getattr(obj, f.name)
-        yield from _leaves(value) if dataclasses.is_dataclass(value) else [(f.name, value)]
 
 
 def _parse(commands: tuple, argv: list[str]):

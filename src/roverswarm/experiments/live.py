@@ -15,9 +15,9 @@ class Summary:
     def __init__(self, runs: list[GridRun], done: set[str]):
         self.runs = runs
         self.done = set(done)
-        self.ended = {r.name: episodes_done(r) for r in runs if r.name in self.done}  # fewer after a budget
+        # as saved: a partial run starts there, a done one may have ended early (a budget)
+        self.saved = {r.name: episodes_done(r) for r in runs}
         self.running: dict[str, int] = {}
-        self.saved = {r.name: episodes_done(r) for r in runs if r.name not in self.done}  # a partial run's start
         self.started = time.perf_counter()
         self.trained = 0  # seed-episodes trained by this command (for the time estimate)
 
@@ -29,11 +29,11 @@ class Summary:
     def finish(self, run: GridRun) -> None:
         self.running.pop(run.name, None)
         self.done.add(run.name)
-        self.ended[run.name] = episodes_done(run)
+        self.saved[run.name] = episodes_done(run)
 
     def _at(self, run: GridRun) -> int:
-        """Episodes per seed a run not yet done stands at: as it reported, else as it was saved."""
-        return self.running.get(run.name, self.saved.get(run.name, 0))
+        """Episodes per seed a run stands at: as it reported while running, else as saved."""
+        return self.running.get(run.name, self.saved[run.name])
 
     def __rich__(self) -> Table:
         left = [r for r in self.runs if r.name not in self.done]
@@ -49,6 +49,6 @@ class Summary:
             table.add_column(column)
         for r in self.runs:
             state = "done" if r.name in self.done else ("running" if r.name in self.running else "queued")
-            episodes = self.ended[r.name] if state == "done" else self._at(r)
+            episodes = self._at(r)
             table.add_row(r.name, state, f"{episodes}/{r.config.episodes}")
         return table
