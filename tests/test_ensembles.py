@@ -17,7 +17,7 @@ from scipy import stats
 from test_ranked import N, transitions
 
 from roverswarm.algos.learner import act, init_learner
-from roverswarm.buffers.base import Transition, gather, importance_weights, recent_indices
+from roverswarm.buffers.base import Transition, gather, importance_weights, recent_indices, update_weights
 from roverswarm.buffers.ranked import ranked_buffer
 from roverswarm.buffers.uniform import uniform_buffer
 from roverswarm.cli import main
@@ -152,6 +152,26 @@ def test_ranked_draws_after_overwrites_report_their_probabilities(num_policies):
         assert stats.chisquare(counts, expected / expected.sum() * counts.sum()).pvalue > 1e-3
     weights = importance_weights(buffer.sample(state, jax.random.PRNGKey(3)))
     assert np.asarray(weights).max() == pytest.approx(1.0)
+
+
+def test_a_group_without_transitions_gets_zero_weights_not_nan():
+    """With beta 0 a sub-policy that has no transitions yet draws a placeholder of probability
+    0 (no uniform share to fall back on): its importance weight would be inf, and inf / inf
+    made the agent's whole critic loss NaN. The update weighs such a group 0; the others keep
+    their importance weights."""
+    buffer = ranked_buffer(64, 16, N, 0.7, 0.0, K, reading="schaul")
+    only_first = np.zeros((20, N), np.int64)  # every agent acted with sub-policy 0 only
+    state = buffer.add(buffer.init(jax.tree.map(lambda x: x[0], numbered(0, only_first[:1]))), numbered(0, only_first))
+    state = buffer.refresh(state, jnp.bool_(True))
+    sample = buffer.sample(state, jax.random.PRNGKey(0))
+    empty = np.asarray(sample.population) == 0
+    assert empty.sum() == N * (K - 1)
+    assert not np.isfinite(np.asarray(importance_weights(sample, 0.5))[empty]).all()  # what the update met
+    weights = np.asarray(update_weights(sample, 0.5))
+    assert (weights[empty] == 0).all()
+    np.testing.assert_array_equal(weights[~empty], np.asarray(importance_weights(sample, 0.5))[~empty])
+    uniform = np.asarray(update_weights(sample, None))
+    np.testing.assert_array_equal(uniform, np.broadcast_to(np.where(empty, 0.0, 1.0)[:, None], uniform.shape))
 
 
 @pytest.fixture(scope="module")

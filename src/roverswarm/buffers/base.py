@@ -188,6 +188,14 @@ def importance_weights(draw: Draw, exponent: float | jax.Array = 1.0) -> jax.Arr
     return weights / weights.max(axis=-1, keepdims=True)
 
 
+def update_weights(draw: Draw, exponent: float | jax.Array | None) -> jax.Array:
+    """[G, B] the weights of each group's draw in the update: importance weights (``exponent``;
+    None: 1 each), and 0 for a group with no transitions, whose draw is a placeholder (its
+    probabilities may be 0, which would make an importance weight inf and the update NaN)."""
+    weights = jnp.ones(draw.probabilities.shape) if exponent is None else importance_weights(draw, exponent)
+    return jnp.where((draw.population > 0)[:, None], weights, 0.0)
+
+
 def newest_fraction(state: BufferState, indices: jax.Array, share: float) -> jax.Array:
     """[G] fraction of each group's sampled ``indices`` among the newest ``share`` of the replay."""
     capacity = jax.tree.leaves(state.data)[0].shape[0]

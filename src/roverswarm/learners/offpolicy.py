@@ -40,9 +40,9 @@ from roverswarm.buffers.base import (
     BufferState,
     Draw,
     ReplayConfig,
-    importance_weights,
     newest_fraction,
     recent_indices,
+    update_weights,
 )
 from roverswarm.env.entities import EntityView, flat_tokens, observe_nearest
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, masks_of, observe, step_env
@@ -240,10 +240,7 @@ def learn(
         )
     else:
         batch = expand(draw.indices)
-    weights = (
-        importance_weights(draw, exponent) if config.buffer.importance_weights else jnp.ones(draw.probabilities.shape)
-    )
-    weights = weights * (draw.population > 0)[:, None]
+    weights = update_weights(draw, exponent if config.buffer.importance_weights else None)
     error = recent = None
     if config.learner.infer_policies:
         error = inference_error(config.learner, learner, batch)
