@@ -16,6 +16,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import onnxruntime as ort
 import pytest
 
 from roverswarm import export_numpy
@@ -31,8 +32,6 @@ from roverswarm.presets import ANYSIZE, IPPO, MAPPO, SWARM
 from roverswarm.runs import CHECKPOINT, CONFIG, Run
 from roverswarm.steering import shield_actions
 from roverswarm.storage import atomic_write, save_checkpoint
-
-ort = pytest.importorskip("onnxruntime")  # the export extra (in the test extra too)
 
 DOCS = Path(__file__).parent.parent / "docs" / "export.md"
 EPISODES, SEED = 40, 1  # 40 episodes of 25 steps: 1,000 recorded swarm observations; seed 1 of 2

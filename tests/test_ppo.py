@@ -157,7 +157,8 @@ def test_value_target_statistics_match_numpy_over_masked_batches():
     np.testing.assert_allclose(stats.var, [kept.var()], rtol=1e-3)
     assert float(stats.count) == len(kept)
     empty = update_obs_norm(stats, jnp.ones((4, 1)), jnp.zeros(4))  # nothing masked in: unchanged
-    np.testing.assert_allclose(empty.mean, stats.mean) and np.testing.assert_allclose(empty.var, stats.var)
+    np.testing.assert_allclose(empty.mean, stats.mean)
+    np.testing.assert_allclose(empty.var, stats.var)
 
 
 def test_validate_names_the_bad_field_and_refuses_options_of_the_other_learner(tiny_ppo_config):

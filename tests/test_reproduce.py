@@ -533,7 +533,6 @@ def _reproduce_on_ray(config, base) -> list[int]:
 
 
 def test_ray_backend_retries_a_killed_worker_and_matches_the_local_backend(base, finished, tmp_path):
-    pytest.importorskip("ray")
     config = tiny_grid(tmp_path, scenarios=("paper-2",), algorithms=("maddpg",), backend="ray", jobs=None, retries=2)
     with multiprocessing.get_context("spawn").Pool(1) as pool:
         killed = pool.apply(_reproduce_on_ray, (config, base))

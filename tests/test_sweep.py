@@ -385,7 +385,6 @@ def test_a_sweep_on_ray_stops_on_a_signal_resumes_and_retries_a_killed_worker(fi
     import multiprocessing
     import shutil
 
-    pytest.importorskip("ray")
     config, _ = finished
     spec = yaml.safe_load(config.file.read_text())
     spec["settings"] = {k: v for k, v in spec["settings"].items() if k != "mappo"}
