@@ -187,18 +187,21 @@ def td_target(cfg, target_critic, next_obs, next_actions, rewards, not_done, i, 
     return rewards[:, i] + cfg.gamma * not_done * (estimates.max(0) if twin_max else estimates.min(0))
 
 
-def clip_and_adam(params, grads, clip, lr):
-    """Clip ``grads`` to global norm ``clip``, then one Adam step from zero moments (t = 1)."""
+def clip_and_adam(params, grads, opt, clip, lr):
+    """Clip ``grads`` to global norm ``clip``, then one Adam step from the moments and step
+    count in ``opt`` (the network's optimiser state: clip's, then Adam's)."""
     norm = jnp.sqrt(sum(jnp.sum(g**2) for g in jax.tree.leaves(grads)))
     scale = jnp.minimum(1.0, clip / norm)
+    adam = opt[1][0]  # optax.adam: (scale_by_adam, scale_by_learning_rate)
+    t = adam.count + 1
 
-    def step(p, g):
+    def step(p, g, mu, nu):
         g = g * scale
-        m_hat = (1 - ADAM_B1) * g / (1 - ADAM_B1)
-        v_hat = (1 - ADAM_B2) * g**2 / (1 - ADAM_B2)
+        m_hat = (ADAM_B1 * mu + (1 - ADAM_B1) * g) / (1 - ADAM_B1**t)
+        v_hat = (ADAM_B2 * nu + (1 - ADAM_B2) * g**2) / (1 - ADAM_B2**t)
         return p - lr * m_hat / (jnp.sqrt(v_hat) + ADAM_EPS)
 
-    return jax.tree.map(step, params, grads)
+    return jax.tree.map(step, params, grads, adam.mu, adam.nu)
 
 
 def gaussian(params, obs):
@@ -221,6 +224,7 @@ def reference_update(
     smooth=True,
     twin_max=False,
     global_order=False,
+    clip_grads=True,
 ):
     """Every agent's update, one agent at a time; results stacked on a leading [N] axis
     ([N * K] for the actors, [N * K, B] for the TD loss). ``batch`` [N * K, B, ...] holds agent
@@ -230,10 +234,11 @@ def reference_update(
     batch = prepared(cfg, norm, batch)
     if cfg.share_parameters:
         return reference_shared_update(
-            cfg, state, batch, weights, actor_on_new_critic, cut_bootstrap, smooth, twin_max, global_order
+            cfg, state, batch, weights, actor_on_new_critic, cut_bootstrap, smooth, twin_max, global_order, clip_grads
         )
     recent = prepared(cfg, norm, RECENT)
     K = cfg.ensemble
+    clip = cfg.grad_clip if clip_grads else np.inf
     pick = lambda tree, i: jax.tree.map(lambda x: x[i], tree)  # noqa: E731
     soft = lambda target, online: jax.tree.map(lambda t, o: (1 - cfg.tau) * t + cfg.tau * o, target, online)  # noqa: E731
     noise_keys = jax.random.split(KEY, N)
@@ -265,7 +270,8 @@ def reference_update(
 
                 if j != i:
                     infer_loss.append(nll(params))
-                    params = clip_and_adam(params, jax.grad(nll)(params), cfg.grad_clip, cfg.actor_lr)
+                    opt = pick(pick(state.approx_opt, i), j)
+                    params = clip_and_adam(params, jax.grad(nll)(params), opt, clip, cfg.actor_lr)
                 approx.append(params)
             result["infer_loss"] = jnp.mean(jnp.stack(infer_loss))
 
@@ -288,7 +294,8 @@ def reference_update(
             return sum(jnp.mean(w * td) for td in td_losses(critic_params))
 
         old_critic = pick(state.critic, i)
-        critic = clip_and_adam(old_critic, jax.grad(critic_loss)(old_critic), cfg.grad_clip, cfg.critic_lr)
+        opt = pick(state.critic_opt, i)
+        critic = clip_and_adam(old_critic, jax.grad(critic_loss)(old_critic), opt, clip, cfg.critic_lr)
         judge = critic if actor_on_new_critic else old_critic
 
         actors, actor_losses = [], []
@@ -302,7 +309,8 @@ def reference_update(
                 ) + cfg.action_penalty * jnp.mean(pre**2)
 
             old_actor = pick(state.actor, i * K + k)
-            actors.append(clip_and_adam(old_actor, jax.grad(actor_loss)(old_actor), cfg.grad_clip, cfg.actor_lr))
+            opt = pick(state.actor_opt, i * K + k)
+            actors.append(clip_and_adam(old_actor, jax.grad(actor_loss)(old_actor), opt, clip, cfg.actor_lr))
             actor_losses.append(actor_loss(old_actor))
         stack = lambda trees: jax.tree.map(lambda *xs: jnp.stack(xs), *trees)  # noqa: E731
         old_targets = [pick(state.target_actor, i * K + k) for k in range(K)]
@@ -330,7 +338,7 @@ def reference_update(
 
 
 def reference_shared_update(
-    cfg, state, batch, weights, actor_on_new_critic, cut_bootstrap, smooth, twin_max, global_order
+    cfg, state, batch, weights, actor_on_new_critic, cut_bootstrap, smooth, twin_max, global_order, clip_grads
 ):
     """One shared actor and critic: agent i's losses on its own batch ``batch[i]`` (already
     prepared) as in :func:`reference_update`, averaged over the agents, then one clipped Adam
@@ -358,9 +366,9 @@ def reference_shared_update(
         return jnp.stack([sum(jnp.mean(w[i] * td) for td in td_losses(critic_params, i)) for i in range(N)])
 
     old_critic = one(state.critic)
-    critic = clip_and_adam(
-        old_critic, jax.grad(lambda p: critic_losses(p).mean())(old_critic), cfg.grad_clip, cfg.critic_lr
-    )
+    clip = cfg.grad_clip if clip_grads else np.inf
+    grads = jax.grad(lambda p: critic_losses(p).mean())(old_critic)
+    critic = clip_and_adam(old_critic, grads, one(state.critic_opt), clip, cfg.critic_lr)
     judge = critic if actor_on_new_critic else old_critic
 
     def actor_losses(actor_params):
@@ -373,9 +381,8 @@ def reference_shared_update(
         return jnp.stack(losses)
 
     old_actor = one(state.actor)
-    new_actor = clip_and_adam(
-        old_actor, jax.grad(lambda p: actor_losses(p).mean())(old_actor), cfg.grad_clip, cfg.actor_lr
-    )
+    grads = jax.grad(lambda p: actor_losses(p).mean())(old_actor)
+    new_actor = clip_and_adam(old_actor, grads, one(state.actor_opt), clip, cfg.actor_lr)
     group = lambda tree: jax.tree.map(lambda x: x[None], tree)  # noqa: E731
     return {
         "td_loss": jnp.stack([td_losses(old_critic, i)[0] for i in range(N)]),
@@ -428,9 +435,35 @@ CASES = {
 }
 
 
+def random_batch(rng, K):
+    """A batch [N * K, B, ...] of random transitions; with K > 1, batch i * K + k comes from
+    agent i's partition k: agent i ran sub-policy k, the others anything."""
+    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    G = N * K
+    policy = None
+    if K > 1:
+        policy = rng.integers(0, K, (G, B, N))
+        for g in range(G):
+            policy[g, :, g // K] = g % K
+        policy = jnp.asarray(policy, jnp.int32)
+    return Transition(
+        obs=f32(rng.standard_normal((G, B, N, O))),
+        actions=f32(rng.uniform(-1, 1, (G, B, N, A))),
+        rewards=f32(rng.standard_normal((G, B, N))),
+        next_obs=f32(rng.standard_normal((G, B, N, O))),
+        terminated=jnp.asarray(rng.random((G, B)) < 0.3),
+        policy=policy,
+    )
+
+
 @pytest.fixture(scope="module", params=list(CASES), ids=list(CASES))
 def case(request):
-    """(config, state, batch, weights, code's new state, code's info, reference results)."""
+    """(config, state, batch, weights, code's new state, code's info, reference results).
+
+    The state has taken one update already (on another batch), so Adam's moments are not
+    zero: from zero moments Adam's first step is lr * g / (|g| + eps), about lr * sign(g),
+    and the comparison would miss anything that scales a gradient (its clipping, a loss
+    summed instead of averaged)."""
     options = dict(CASES[request.param])
     weighted = options.pop("weighted", False)
     # pinned (not the defaults): float32 agreement was established at these widths and rates
@@ -446,25 +479,12 @@ def case(request):
     if cfg.normalize_obs:  # a normaliser that has seen something: every entry shifted and scaled
         mean, var = rng.normal(0, 0.5, O).astype(np.float32), rng.uniform(0.5, 2.0, O).astype(np.float32)
         state = state.replace(obs_norm=ObsNorm(mean=jnp.asarray(mean), var=jnp.asarray(var), count=jnp.asarray(100.0)))
-    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-    G = N * K
-    policy = None
-    if K > 1:  # batch i * K + k comes from agent i's partition k: agent i ran k, the others anything
-        policy = rng.integers(0, K, (G, B, N))
-        for g in range(G):
-            policy[g, :, g // K] = g % K
-        policy = jnp.asarray(policy, jnp.int32)
-    batch = Transition(
-        obs=f32(rng.standard_normal((G, B, N, O))),
-        actions=f32(rng.uniform(-1, 1, (G, B, N, A))),
-        rewards=f32(rng.standard_normal((G, B, N))),
-        next_obs=f32(rng.standard_normal((G, B, N, O))),
-        terminated=jnp.asarray(rng.random((G, B)) < 0.3),
-        policy=policy,
-    )
-    assert 0 < int(batch.terminated.sum()) < G * B
-    weights = f32(rng.uniform(0.1, 2.0, (G, B))) if weighted else None
-    new_state, info = jax.jit(update, static_argnums=0)(cfg, state, batch, weights, RECENT, KEY)
+    batch = random_batch(rng, K)
+    assert 0 < int(batch.terminated.sum()) < N * K * B
+    weights = jnp.asarray(rng.uniform(0.1, 2.0, (N * K, B)), jnp.float32) if weighted else None
+    step = jax.jit(update, static_argnums=0)
+    state = step(cfg, state, random_batch(rng, K), weights, RECENT, jax.random.PRNGKey(8))[0]  # the moments
+    new_state, info = step(cfg, state, batch, weights, RECENT, KEY)
     return cfg, state, batch, weights, new_state, info, reference_update(cfg, state, batch, weights)
 
 
@@ -498,14 +518,15 @@ def test_updated_parameters_match_reference(case, network):
 
 @pytest.mark.parametrize(
     "variant",
-    [dict(actor_on_new_critic=False), dict(cut_bootstrap=False)],
-    ids=["actor_on_old_critic", "no_bootstrap_cut"],
+    [dict(actor_on_new_critic=False), dict(cut_bootstrap=False), dict(clip_grads=False)],
+    ids=["actor_on_old_critic", "no_bootstrap_cut", "unclipped_gradients"],
 )
 def test_reference_variants_are_caught(case, variant):
     cfg, state, batch, weights, new_state, info, _ = case
     wrong = reference_update(cfg, state, batch, weights, **variant)
-    got = info["td_loss"] if "cut_bootstrap" in variant else new_state.actor
-    want = wrong["td_loss"] if "cut_bootstrap" in variant else wrong["actor"]
+    seen = {"cut_bootstrap": "td_loss", "clip_grads": "critic"}.get(next(iter(variant)), "actor")
+    got = info["td_loss"] if seen == "td_loss" else getattr(new_state, seen)
+    want = wrong[seen]
     gap = max(jax.tree.leaves(jax.tree.map(lambda g, w: np.abs(g - w).max(), got, want)))
     assert gap > 1e-3, variant
 
