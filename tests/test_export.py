@@ -394,6 +394,18 @@ def test_refusals_are_one_line_and_exit_code_2(exported, tmp_path, capsys):
         assert not (tmp_path / "out").exists()
 
 
+def test_an_export_does_not_replace_files_of_a_folder_that_holds_no_export(exported, tmp_path, capsys):
+    """`export --out .` in a project would have replaced its README.md; an earlier export is
+    replaced (the next test), a folder holding none of the export's files is written to."""
+    from roverswarm.cli import main
+
+    (tmp_path / "README.md").write_text("my project\n")
+    assert main(["export", str(exported["ippo"][0]), "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "holds README.md and no earlier roverswarm export" in err[0], err
+    assert (tmp_path / "README.md").read_text() == "my project\n" and not (tmp_path / "policy.onnx").exists()
+
+
 def test_an_export_that_cannot_write_every_file_changes_none(exported, tmp_path, capsys):
     """Each file was renamed in place as it was written: a README.md that could not be written
     left the other three files of another run's export beside the old README. Now every file

@@ -325,6 +325,21 @@ def readme(meta: dict) -> str:
     )
 
 
+def _check_replaceable(out: Path, files: dict[str, Path]) -> None:
+    """Refuse an ``out`` that holds any of the export's files but no earlier export (a
+    ``policy.json`` of ours): they are the user's (a project's README.md) and would be replaced."""
+    clash = [name for name, path in files.items() if path.exists()]
+    try:
+        earlier = json.loads((out / "policy.json").read_text())["format"].startswith("roverswarm onnx policy")
+    except (OSError, ValueError, TypeError, KeyError, AttributeError):
+        earlier = False
+    require(
+        not clash or earlier,
+        f"--out '{out}' holds {', '.join(clash)} and no earlier roverswarm export: the export would replace "
+        "them; give an empty or new folder",
+    )
+
+
 def export_run(run_folder: str | Path, out: str | Path, seed: int = 0, shield: bool = False) -> Export:
     """Export seed ``seed`` of the finished run in ``run_folder`` into folder ``out`` (see the
     module docstring), with the safety layer if ``shield`` or if the run was trained behind it;
@@ -366,5 +381,6 @@ def export_run(run_folder: str | Path, out: str | Path, seed: int = 0, shield: b
     difference = check_model(run, seed, meta, model_bytes)
     files = {name: out / name for name in contents}
     with folder_lock(out):
+        _check_replaceable(out, files)
         atomic_write_files({files[name]: content for name, content in contents.items()})
     return Export(files=files, meta=meta, difference=difference)
