@@ -141,23 +141,24 @@ def tiny_ppo_config():
 
 @pytest.fixture
 def signal_at_chunk(monkeypatch):
-    """``arm(signum, chunk)`` makes the next training send ``signum`` to this process just
-    before its chunk number ``chunk`` (as Ctrl-C or a scheduler would); it returns a function
-    that restores the trainer (every learner family's chunk)."""
+    """``arm(signum, chunk, times)`` makes the next training send ``signum`` to this process
+    ``times`` times just before its chunk number ``chunk`` (as Ctrl-C or a scheduler would);
+    it returns a function that restores the trainer (every learner family's chunk)."""
     import dataclasses
 
     from roverswarm.learners import FAMILIES
 
     real = dict(FAMILIES)
 
-    def arm(signum: int = signal.SIGINT, chunk: int = 2):
+    def arm(signum: int = signal.SIGINT, chunk: int = 2, times: int = 1):
         calls = []
 
         def signalled(run_chunk):
             def run(*args):
                 calls.append(1)
                 if len(calls) == chunk:
-                    os.kill(os.getpid(), signum)
+                    for _ in range(times):
+                        os.kill(os.getpid(), signum)
                 return run_chunk(*args)
 
             return run

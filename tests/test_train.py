@@ -10,6 +10,7 @@ import os
 import shutil
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import time
@@ -18,6 +19,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from tensorboardX.proto.event_pb2 import Event, SessionLog
 
 import roverswarm.limits as limits
 import roverswarm.trainer as trainer_module
@@ -29,7 +31,7 @@ from roverswarm.learners import FAMILIES, offpolicy
 from roverswarm.learners.offpolicy import run_buffer
 from roverswarm.presets import REFERENCE, SWARM
 from roverswarm.runs import CHECKPOINT, LOCK, METRICS, Run, folder_lock, read_metrics
-from roverswarm.storage import atomic_write
+from roverswarm.storage import atomic_write, trained_episodes
 from roverswarm.trainer import checkpoint_due, train
 
 TIMELESS = lambda rows: [{k: v for k, v in r.items() if k != "wall_seconds"} for r in rows]  # noqa: E731
@@ -163,10 +165,49 @@ def test_ctrl_c_or_sigterm_saves_a_checkpoint_and_resume_finishes(tiny_config, t
     _, err = process.communicate(timeout=120)
     assert process.returncode == 1, err
     assert "interrupted at episode" in err and "--resume" in err
+    assert f"{signal.Signals(signum).name}: stopping after this chunk, with a checkpoint" in " ".join(err.split())
     rows = read_metrics(out / "metrics.csv")
     assert 0 < len(rows) < config.episodes // config.log_every * config.seeds
     assert main(["train", "--resume", str(out)]) == 0
     assert read_metrics(out / "metrics.csv")[-1]["episodes"] == config.episodes
+
+
+def test_a_second_ctrl_c_stops_at_once_keeping_the_last_checkpoint(
+    unbroken, tiny_config, tmp_path, signal_at_chunk, capsys
+):
+    """The first Ctrl-C asks for a checkpoint after the chunk; a second one (a chunk can take
+    minutes) stops at once, exit code 130 in one line, with the checkpoint saved before it,
+    from which the run resumes to the numbers of a run never interrupted."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal
+    disarm = signal_at_chunk(signal.SIGINT, chunk=2, times=2)
+    try:
+        code = main(["train", *cli_args(tiny_config), "--out", str(tmp_path)])
+    finally:
+        disarm()
+        signal.signal(signal.SIGINT, previous)
+    assert code == 130
+    assert trained_episodes(tmp_path / CHECKPOINT) == tiny_config.log_every  # chunk 1's, chunk 2 never ran
+    err = " ".join(capsys.readouterr().err.split())
+    assert "SIGINT again stops at once" in err and err.endswith(
+        "roverswarm: interrupted; what was saved before is kept"
+    )
+    resumed = train(tiny_config, out=tmp_path, resume=True, progress=False)
+    assert TIMELESS(resumed.metrics) == TIMELESS(unbroken.metrics)
+    # TensorBoard is told to drop what the stopped session logged past the checkpoint
+    starts = [e.step for e in tensorboard_events(tmp_path / "tb") if e.session_log.status == SessionLog.START]
+    assert starts == [2 * tiny_config.log_every]
+
+
+def tensorboard_events(folder: Path) -> list:
+    """Every event in ``folder``'s TensorBoard files (records: length, its CRC, the event, its CRC)."""
+    events = []
+    for path in sorted(folder.glob("events.out.tfevents.*")):
+        data, at = path.read_bytes(), 0
+        while at < len(data):
+            (length,) = struct.unpack("<Q", data[at : at + 8])
+            events.append(Event.FromString(data[at + 12 : at + 12 + length]))
+            at += 12 + length + 4
+    return events
 
 
 def test_a_checkpoint_is_due_by_chunks_or_once_the_minutes_have_passed(tiny_config):
@@ -276,6 +317,19 @@ def test_resume_with_a_different_config_is_refused(unbroken, capsys):
     assert "has scenario='paper-2', not 'paper-5'" in capsys.readouterr().err
     assert main(["train", "--out", str(unbroken.out), "--scenario", "paper-2"]) == 2
     assert "already holds a run" in capsys.readouterr().err
+
+
+def test_a_new_run_does_not_overwrite_a_run_whose_checkpoint_was_removed(unbroken, capsys, tmp_path):
+    """A finished run kept as its record (config, metrics, curve) after its checkpoint was
+    removed to save space is refused, its files unchanged."""
+    out = tmp_path / "record"
+    shutil.copytree(unbroken.out, out)
+    (out / CHECKPOINT).unlink()
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    assert main(["train", "--episodes", "20", "--log-every", "20", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "holds a run's metrics.csv and learning_curve.png but no checkpoint.npz" in err and err.count("\n") == 1
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before
 
 
 def test_a_new_run_does_not_overwrite_another_commands_metrics(capsys, tmp_path):

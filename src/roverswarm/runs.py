@@ -32,6 +32,7 @@ from roverswarm.storage import atomic_write, read_arrays, restore, save_figure, 
 CHECKPOINT = "checkpoint.npz"
 CONFIG = "config.json"
 METRICS = "metrics.csv"
+CURVE = "learning_curve.png"
 LOCK = ".lock"
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import signal
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +40,7 @@ from roverswarm.limits import check_training_memory, read_config
 from roverswarm.runs import (
     CHECKPOINT,
     CONFIG,
+    CURVE,
     METRICS,
     budget_spent,
     checkpointed_rows,
@@ -65,7 +67,10 @@ class Result:
 
 class _StopFlag:
     """Turns Ctrl-C (SIGINT) and SIGTERM (schedulers, Ray) into a flag the host loop checks
-    between chunks (in the main thread only)."""
+    between chunks (in the main thread only), and says so; the first signal puts the previous
+    handlers back, so a second one stops at once (Ctrl-C: KeyboardInterrupt). A job of
+    ``reproduce`` or ``sweep`` starts with SIGINT ignored, so it goes on ignoring its parent's
+    repeated requests, and says nothing: the parent does."""
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
@@ -82,10 +87,20 @@ class _StopFlag:
 
     def _handle(self, signum, frame):
         self.raised = True
+        ignored = self._previous.get(signum) is signal.SIG_IGN  # a job of reproduce or sweep: its parent speaks
+        self.__exit__()  # a second signal acts as it did before: Ctrl-C stops at once
+        name = signal.Signals(signum).name
+        if not ignored:
+            print(
+                f"\nroverswarm: {name}: stopping after this chunk, with a checkpoint "
+                f"({name} again stops at once; the last checkpoint saved is kept)",
+                file=sys.stderr,
+            )
 
     def __exit__(self, *exc):
         for sig, previous in self._previous.items():
             signal.signal(sig, previous)
+        self._previous = {}
 
 
 def train(
@@ -219,6 +234,13 @@ def _train(
                 f"'{out}' already holds a run; continue it with --resume or choose another --out",
             )
             # a mission's outputs, say: a run (even one stopped before its checkpoint) writes config.json first
+            # a finished or stopped run always has its checkpoint: one whose checkpoint was removed
+            # (to save space) keeps its curve and metrics as its record
+            require(
+                not (out / CURVE).exists(),
+                f"'{out}' holds a run's {METRICS} and {CURVE} but no {CHECKPOINT} (removed?), which training "
+                "would overwrite; choose another --out",
+            )
             require(
                 not (out / METRICS).exists() or (out / CONFIG).exists(),
                 f"'{out}' holds another command's {METRICS} (no {CONFIG}: not a training run), which training "
@@ -226,10 +248,11 @@ def _train(
             )
             out.mkdir(parents=True, exist_ok=True)
         write_text(out / CONFIG, config_to_json(config))
-    writer = SummaryWriter(str(out / "tb")) if out is not None else None
-
     chunks = config.episodes // config.log_every
     first = int(runner.episodes) // config.log_every
+    # on resume TensorBoard drops the events a killed session logged past the checkpoint
+    purge = (first + 1) * config.log_every if first else None
+    writer = SummaryWriter(str(out / "tb"), purge_step=purge) if out is not None else None
     spent = training_seconds(rows)
     bar = Progress(
         TextColumn("{task.description}", style="bold", markup=False),
@@ -293,9 +316,7 @@ def _train(
                     saved_at = time.monotonic()
                 if stop.raised and not last:
                     if out is not None:
-                        plot_learning_curve(
-                            rows, out / "learning_curve.png", f"{config.learner.algo} on {config.env_name()}"
-                        )
+                        plot_learning_curve(rows, out / CURVE, f"{config.learner.algo} on {config.env_name()}")
                     where = (
                         f"checkpoint saved; continue with: roverswarm train --resume {out}"
                         if out
@@ -312,5 +333,5 @@ def _train(
         if writer is not None:
             writer.close()
     if out is not None:
-        plot_learning_curve(rows, out / "learning_curve.png", f"{config.learner.algo} on {config.env_name()}")
+        plot_learning_curve(rows, out / CURVE, f"{config.learner.algo} on {config.env_name()}")
     return Result(config=config, metrics=rows, learner=runner.learner, out=out)
