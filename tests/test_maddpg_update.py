@@ -60,11 +60,11 @@ N, O, A, B = 3, 20, 2, 32
 # float32; the loosest entries are Adam steps on gradients of the order of eps, where the
 # step lr * g / (|g| + eps) inherits the rounding of g (observed up to ~2e-5)
 TOL = dict(atol=1e-5, rtol=1e-4)
-# updated parameters: an Adam step moves each one by about lr = 1e-2, by lr * g / (|g| + eps)
-# from zero moments, so where g is near eps it inherits g's float32 rounding: a handful of the
-# ensembles' ~1e5 parameters differ by up to ~4e-4 (4% of a step), and where |g| is below eps
-# itself by a quarter of a step (one entry of the ensemble's actor with inferred policies: g of
-# 3e-9 against 1e-8, steps of 0.0023 against 0.0050); a real error moves many
+# updated parameters: an Adam step moves each one by up to about lr = 1e-2, by
+# lr * m / (sqrt(v) + eps), so where the gradients are near eps it inherits their float32
+# rounding (measured from zero moments: a handful of the ensembles' ~1e5 parameters by up to
+# ~4e-4, 4% of a step, and one entry with |g| below eps, 3e-9 against 1e-8, by a quarter of a
+# step); a real error moves many
 
 
 def assert_parameters_close(got, want):
