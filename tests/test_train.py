@@ -237,24 +237,33 @@ def test_checkpoint_minutes_save_mid_run_without_changing_the_numbers(unbroken, 
         assert TIMELESS(result.metrics) == TIMELESS(unbroken.metrics)
 
 
-def test_non_finite_losses_stop_the_run_and_keep_the_last_good_checkpoint(tiny_config, tmp_path, monkeypatch):
+@pytest.mark.parametrize("poisoned", ["loss or reward", "network parameters"])
+def test_non_finite_losses_stop_the_run_and_keep_the_last_good_checkpoint(poisoned, tiny_config, tmp_path, monkeypatch):
+    """A NaN loss, or NaN weights from a chunk's last update (which no loss has seen yet: they
+    would have been saved over the last good checkpoint), stop the run before its checkpoint."""
     real = offpolicy.run_chunk
     calls = []
 
-    def poisoned(config, params, runner, total):
+    def poisoning(config, params, runner, total):
         runner, metrics = real(config, params, runner, total)
         calls.append(1)
-        if len(calls) == 3:
+        if len(calls) == 3 and poisoned == "loss or reward":
             metrics = {**metrics, "critic_loss": metrics["critic_loss"] * np.nan}
+        if len(calls) == 3 and poisoned == "network parameters":
+            learner = runner.learner.replace(
+                actor=jax.tree.map(lambda x: x.at[0].multiply(np.nan), runner.learner.actor)
+            )
+            runner = runner.replace(learner=learner)
         return runner, metrics
 
-    monkeypatch.setitem(FAMILIES, "maddpg", dataclasses.replace(FAMILIES["maddpg"], run_chunk=poisoned))
+    monkeypatch.setitem(FAMILIES, "maddpg", dataclasses.replace(FAMILIES["maddpg"], run_chunk=poisoning))
     out = tmp_path / "diverged"
-    with pytest.raises(RunStopped, match="non-finite loss or reward at episode 300.*last good checkpoint"):
+    with pytest.raises(RunStopped, match=f"non-finite {poisoned} at episode 300.*last good checkpoint"):
         train(tiny_config, out=out, progress=False)
     with np.load(out / CHECKPOINT) as data:
         assert int(data["episodes"]) == 200
-    assert len(read_metrics(out / "metrics.csv")) == 2 * tiny_config.seeds
+    logged = 2 if poisoned == "loss or reward" else 3  # the third chunk's losses were finite (resume trims them)
+    assert len(read_metrics(out / "metrics.csv")) == logged * tiny_config.seeds
 
 
 RANKED_OPTIONS = dict(

@@ -103,6 +103,22 @@ class _StopFlag:
         self._previous = {}
 
 
+def _all_finite(tree: Any) -> bool:
+    """Whether every float in ``tree`` (a learner state: networks, optimisers, statistics) is finite."""
+    return all(
+        np.isfinite(x).all() for x in jax.device_get(jax.tree.leaves(tree)) if np.issubdtype(x.dtype, np.inexact)
+    )
+
+
+def _diverged(what: str, episodes: int, out: Path | None) -> RunStopped:
+    kept = (
+        f"the last good checkpoint in '{out}' is kept"
+        if out is not None and (out / CHECKPOINT).exists()
+        else "no checkpoint was saved"
+    )
+    return RunStopped(f"non-finite {what} at episode {episodes}; stopping ({kept}). Try smaller learning rates.")
+
+
 def train(
     config: TrainConfig,
     out: Path | None = None,
@@ -282,15 +298,7 @@ def _train(
                 episodes = (chunk + 1) * config.log_every
                 new_rows = metric_rows(config, metrics, episodes, seconds)
                 if not all(math.isfinite(v) for r in new_rows for v in r.values()):
-                    kept = (
-                        f"the last good checkpoint in '{out}' is kept"
-                        if out is not None and (out / CHECKPOINT).exists()
-                        else "no checkpoint was saved"
-                    )
-                    raise RunStopped(
-                        f"non-finite loss or reward at episode {episodes}; stopping ({kept}). Try "
-                        "smaller learning rates."
-                    )
+                    raise _diverged("loss or reward", episodes, out)
                 rows.extend(new_rows)
                 spent += seconds
                 if writer is not None:
@@ -311,6 +319,8 @@ def _train(
                 if out is not None:  # every chunk's rows at once; rows past the checkpoint are trimmed on resume
                     write_csv(out / METRICS, rows)
                 if out is not None and (last or stop.raised or checkpoint_due(config, chunk + 1 - first, saved_at)):
+                    if not _all_finite(runner.learner):  # the chunk's last update, which no loss saw yet
+                        raise _diverged("network parameters", episodes, out)
                     unfinished = chunk + 1 < chunks  # a finished run's replay is dropped (most of the file)
                     save_checkpoint(out / CHECKPOINT, runner, replay=unfinished, config_json=config_to_json(config))
                     saved_at = time.monotonic()
