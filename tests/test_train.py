@@ -25,6 +25,7 @@ import roverswarm.limits as limits
 import roverswarm.trainer as trainer_module
 from roverswarm.cli import main
 from roverswarm.config import TrainConfig, config_from_json, config_to_json, validate, with_options
+from roverswarm.env import get_scenario
 from roverswarm.errors import RunStopped, UserError
 from roverswarm.evaluate import evaluate_run
 from roverswarm.learners import FAMILIES, offpolicy
@@ -208,6 +209,28 @@ def tensorboard_events(folder: Path) -> list:
             events.append(Event.FromString(data[at + 12 : at + 12 + length]))
             at += 12 + length + 4
     return events
+
+
+def test_the_logged_rewards_are_those_the_replay_stored(tiny_config, tmp_path, signal_at_chunk):
+    """metrics.csv against what the replay holds after the first chunk (stopped there, its
+    checkpoint keeps the replay: 100 episodes per seed, all of them stored): each seed's
+    agent_i_reward is agent i's stored rewards summed over those episodes, divided by them;
+    episode_reward is the sum over the rovers."""
+    disarm = signal_at_chunk(signal.SIGINT, chunk=1)
+    with pytest.raises(RunStopped, match="interrupted at episode 100"):
+        train(tiny_config, out=tmp_path, progress=False)
+    disarm()
+    with np.load(tmp_path / CHECKPOINT) as data:
+        rewards = data["buffer/data/rewards"]  # [S, transitions, N]
+    episodes = tiny_config.log_every
+    assert rewards.shape[:2] == (tiny_config.seeds, episodes * get_scenario(tiny_config.scenario).max_steps)
+    rows = read_metrics(tmp_path / METRICS)
+    assert [r["seed"] for r in rows] == list(range(tiny_config.seeds))
+    for s, row in enumerate(rows):
+        returns = rewards[s].sum(0) / episodes
+        np.testing.assert_allclose([row[f"agent_{i}_reward"] for i in range(len(returns))], returns, rtol=1e-4)
+        assert row["episode_reward"] == pytest.approx(returns.sum(), rel=1e-4)
+        assert abs(returns.sum()) > 1  # rewards that are there to compare
 
 
 def test_a_checkpoint_is_due_by_chunks_or_once_the_minutes_have_passed(tiny_config):
