@@ -118,11 +118,36 @@ def test_ranked_partitions_follow_eq_12_13_within_each_partition():
         np.testing.assert_allclose(probabilities[:, g].ravel(), [lookup[n] for n in numbers[:, g].ravel()], rtol=1e-4)
 
 
+def overwritten_reference(losses, policies, group, num_policies, alpha, beta, capacity, ranked_count):
+    """The documented rule (``buffers.ranked``), slowly: the probability of each transition
+    number ``group``'s draw can return, after ``ranked_count`` transitions were ranked (with
+    ``losses``, by number) and more were added since, overwriting the oldest. The ranked
+    part keeps each survivor's share of the last refresh (eq. 12-13 within the partition);
+    the new ones share the weight of being tied at the top ((M_r + (n + 1) / 2)^alpha each)
+    and the shares of the overwritten ones, evenly; beta goes to every live one evenly."""
+    total = len(policies)
+    agent, k = divmod(group, num_policies)
+    members = lambda numbers: numbers[policies[numbers, agent] == k]  # noqa: E731
+    ranked, live = members(np.arange(ranked_count)), members(np.arange(total - capacity, total))
+    fresh = members(np.arange(ranked_count, total))
+    weights = stats.rankdata(losses[ranked], method="average") ** alpha
+    rank_share = dict(zip(ranked, weights / weights.sum()))
+    stale = sum(share for number, share in rank_share.items() if number < total - capacity)
+    top = len(fresh) * (len(ranked) + (len(fresh) + 1) / 2) ** alpha
+    to_fresh = top / (top + weights.sum())
+    reference = {n: beta / len(live) + (1 - beta) * (1 - to_fresh) * rank_share[n] for n in live if n < ranked_count}
+    reference.update(
+        {n: beta / len(live) + (1 - beta) * (to_fresh + (1 - to_fresh) * stale) / len(fresh) for n in fresh}
+    )
+    return reference
+
+
 @pytest.mark.parametrize("num_policies", [1, K], ids=["plain", "ensemble"])
 def test_ranked_draws_after_overwrites_report_their_probabilities(num_policies):
     """A full buffer whose oldest slots were overwritten since the re-ranking: every draw
-    comes from the group's live partition, and the draws follow the probabilities reported
-    (the exact probability of the draw as made, which importance weights rely on)."""
+    comes from the group's live partition, the draws follow the probabilities reported
+    (the exact probability of the draw as made, which importance weights rely on), and those
+    are the documented rule's (:func:`overwritten_reference`)."""
     capacity = 500
     buffer = ranked_buffer(capacity, 256, N, 1.5, 0.2, num_policies)
     rng = np.random.default_rng(2)
@@ -145,6 +170,9 @@ def test_ranked_draws_after_overwrites_report_their_probabilities(num_policies):
             assert p == pytest.approx(reported[n], rel=1e-5), "one transition, two probabilities"
         unseen = 1.0 - sum(reported.values())
         assert unseen >= -1e-4, "the reported probabilities sum to more than one"
+        want = overwritten_reference(losses, policies, g, num_policies, 1.5, 0.2, capacity, 500)
+        assert sum(want.values()) == pytest.approx(1.0) and set(reported) <= set(want)
+        np.testing.assert_allclose([reported[n] for n in reported], [want[n] for n in reported], rtol=1e-3)
         counts = np.array([np.sum(numbers[:, g] == n) for n in reported])
         expected = np.array(list(reported.values()), np.float64)
         if unseen > 1e-6:  # transitions never drawn: one bin of count 0
