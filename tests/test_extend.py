@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import shutil
 import signal
 import time
 from types import SimpleNamespace
@@ -18,7 +19,8 @@ from roverswarm.errors import RunStopped
 from roverswarm.experiments.arms import GridRun, status
 from roverswarm.experiments.live import Summary
 from roverswarm.learners import FAMILIES
-from roverswarm.runs import CHECKPOINT, read_metrics
+from roverswarm.runs import CHECKPOINT, CONFIG, Run, read_metrics
+from roverswarm.storage import trained_episodes
 from roverswarm.trainer import train
 
 
@@ -107,6 +109,27 @@ def test_a_finished_run_extended_warms_its_emptied_replay_up_again(finished, tin
     assert timeless(rows[: len(first)]) == first
     assert [r["episodes"] for r in rows] == [e for e in (100, 200, 300) for _ in range(config.seeds)]
     assert [r["seed"] for r in rows] == [0, 1] * 3
+
+
+def test_an_extension_lost_before_its_first_checkpoint_leaves_the_run_as_it_was(finished, tmp_path, monkeypatch):
+    """config.json was rewritten with the new --episodes before the extension's first
+    checkpoint: one lost before it (a killed process, a lost machine) left a finished run that
+    `export` and the sweeps took for an unfinished one. It is written with that checkpoint."""
+    config, run, _ = finished
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    before = (copy / CONFIG).read_text()
+
+    def lost(*args):
+        raise RuntimeError("the machine was lost")
+
+    monkeypatch.setitem(
+        FAMILIES, config.learner.algo, dataclasses.replace(FAMILIES[config.learner.algo], run_chunk=lost)
+    )
+    with pytest.raises(RuntimeError, match="the machine was lost"):
+        train(dataclasses.replace(config, episodes=500), out=copy, resume=True, progress=False)
+    assert (copy / CONFIG).read_text() == before
+    assert Run(copy).config.episodes == trained_episodes(copy / CHECKPOINT) == 300
 
 
 def test_an_on_policy_run_extended_equals_one_trained_to_the_new_length_at_once(tiny_ppo_config, tmp_path, capsys):

@@ -263,7 +263,10 @@ def _train(
                 "would overwrite; choose another --out",
             )
             out.mkdir(parents=True, exist_ok=True)
-        write_text(out / CONFIG, config_to_json(config))
+            write_text(out / CONFIG, config_to_json(config))
+    # a resumed run's config.json (its --episodes or budget may have grown) is written with its
+    # first checkpoint: an extension lost before that leaves the run as it was (finished, say)
+    config_due = out is not None and resume
     chunks = config.episodes // config.log_every
     first = int(runner.episodes) // config.log_every
     # on resume TensorBoard drops the events a killed session logged past the checkpoint
@@ -322,6 +325,9 @@ def _train(
                     if not _all_finite(runner.learner):  # the chunk's last update, which no loss saw yet
                         raise _diverged("network parameters", episodes, out)
                     unfinished = chunk + 1 < chunks  # a finished run's replay is dropped (most of the file)
+                    if config_due:
+                        write_text(out / CONFIG, config_to_json(config))
+                        config_due = False
                     save_checkpoint(out / CHECKPOINT, runner, replay=unfinished, config_json=config_to_json(config))
                     saved_at = time.monotonic()
                 if stop.raised and not last:
