@@ -435,6 +435,28 @@ def test_the_verdict_on_growth_needs_a_gain_shown_at_the_largest_n(changes, p_ho
     assert line.startswith(f"- *MADDPG + optimizer helps more as N grows*: {word} by our runs"), line
 
 
+@pytest.mark.parametrize(
+    "maddpg_wins, word",
+    [((True, True), "supported"), ((True, False), "partly supported"), ((False, False), "not supported")],
+)
+def test_the_verdict_on_maddpg_against_ddpg_counts_the_sizes_it_wins(maddpg_wins, word):
+    """*MADDPG beats DDPG*: supported where MADDPG's best reward is higher at every N, partly
+    where at some, not where at none; the change printed is MADDPG's against DDPG's."""
+    from types import SimpleNamespace
+
+    from roverswarm.experiments.report import verdicts
+
+    results = []
+    for n, wins in zip((2, 3), maddpg_wins):
+        ddpg = np.array([-100.0, -102.0, -98.0])
+        maddpg = ddpg + (5.0 if wins else -5.0)
+        for algorithm, best in (("maddpg", maddpg), ("ddpg", ddpg)):
+            results.append(SimpleNamespace(rovers=n, run=SimpleNamespace(algorithm=algorithm), best=best))
+    (line,) = verdicts(results, [])[1:]  # after the growth line that no optimizer arm gives
+    assert line.startswith(f"- *MADDPG beats DDPG*: {word};"), line
+    assert f"N = 2: {'+' if maddpg_wins[0] else '-'}5.0%" in line, line
+
+
 def test_holm_adjusted_p_values_reject_what_holms_procedure_rejects():
     assert holm([0.01, 0.04, 0.03, float("nan")])[:3] == pytest.approx([0.03, 0.06, 0.06])
     assert np.isnan(holm([0.01, float("nan")])[1]) and holm([]).shape == (0,)
