@@ -12,6 +12,7 @@ import pytest
 
 from roverswarm import train
 from roverswarm.algos import ppo
+from roverswarm.algos.ppo import policy_mask
 from roverswarm.algos.ppo_networks import policy_networks
 from roverswarm.config import TrainConfig, validate, with_options
 from roverswarm.env.entities import greedy_match
@@ -19,6 +20,7 @@ from roverswarm.episodes import reset_all, training_params
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
 from roverswarm.learners.onpolicy import collect, configure, make_batch
+from roverswarm.metrics import masked_mean
 from roverswarm.oracle import greedy_plan, oracle_actions
 from roverswarm.presets import ANYSIZE
 from roverswarm.runs import Run
@@ -83,10 +85,21 @@ def test_the_trajectory_holds_the_oracles_actions_and_the_loss_their_distance(ti
     def one_update(key):
         traj, _ = collect(config, params, state.actor, key)
         batch, _ = make_batch(config, state, traj)
-        _, parts = ppo.update_minibatch(config, state, batch)
-        return traj.teacher[0], batch, nets.policy(state.actor, batch.actor_inputs)[0], parts
+        taught, parts = ppo.update_minibatch(config, state, batch)
+        untaught, _ = ppo.update_minibatch(config, state, batch.replace(teacher=None))
+        mask = policy_mask(batch)
+        distance = lambda actor: masked_mean(  # noqa: E731
+            jnp.square(nets.policy(actor, batch.actor_inputs)[0] - batch.teacher).sum(-1), mask
+        )
+        steps = dict(taught=taught, untaught=untaught, distance=(distance(taught.actor), distance(untaught.actor)))
+        return traj.teacher[0], batch, nets.policy(state.actor, batch.actor_inputs)[0], parts, steps
 
-    first, batch, mean, parts = one_update(key)
+    first, batch, mean, parts, steps = one_update(key)
+    # the imitation term moves the actor towards the oracle's actions and leaves the value alone
+    gap = lambda a, b: max(jax.tree.leaves(jax.tree.map(lambda x, y: float(np.abs(x - y).max()), a, b)))  # noqa: E731
+    assert gap(steps["taught"].critic, steps["untaught"].critic) < 1e-6
+    assert gap(steps["taught"].actor, steps["untaught"].actor) > 1e-5
+    assert steps["distance"][0] < steps["distance"][1]
     starts = reset_all(config, training_params(config, params), jax.random.split(key)[0], jnp.asarray(0))
     plans = jax.vmap(greedy_plan, in_axes=(0, None))(starts, params)
     labels = jax.jit(jax.vmap(oracle_actions, in_axes=(0, 0, None)), static_argnums=2)(starts, plans, params)
