@@ -625,6 +625,36 @@ def test_contact_shaping_trains_on_a_heavier_penalty_and_reports_the_environment
         validate(with_options(config, {shaping: -1.0}))
 
 
+def test_the_swarm_shaping_pays_for_pois_first_observed_and_charges_the_unobserved_distance(tiny_ppo_config):
+    """--observe-bonus b and --unobserved-shaping u on every rover's reward at every step of
+    random episodes: + b per POI first observed at that step, - u times the distance left to the
+    POIs not yet observed (both checked against NumPy loops in test_env_mars), not the coverage
+    distance, which counts observed POIs too and differs on these steps."""
+
+    from roverswarm.env.mars import reset, step_env
+    from roverswarm.metrics import shaped_rewards
+
+    b, u = 0.7, 0.3
+    learner = with_options(tiny_ppo_config, {"observe_bonus": b, "unobserved_shaping": u}).learner
+    params = get_scenario("paper-3")
+
+    def episode(key):
+        _, state = reset(key, params)
+
+        def step(state, key):
+            actions = jax.random.uniform(key, (params.num_rovers, 2), minval=-1, maxval=1)
+            _, state, rewards, *_, info = step_env(state, actions, params)
+            return state, (rewards, info)
+
+        return jax.lax.scan(step, state, jax.random.split(key, params.max_steps))[1]
+
+    rewards, info = jax.jit(jax.vmap(episode))(jax.random.split(jax.random.PRNGKey(3), 16))
+    first, left = np.asarray(info["pois_first_observed"]), np.asarray(info["unobserved_distance"])
+    expected = np.asarray(rewards) + (b * first - u * left)[..., None]
+    np.testing.assert_allclose(shaped_rewards(rewards, info, learner), expected, rtol=1e-5, atol=1e-5)
+    assert first.sum() > 5 and not np.allclose(left, np.asarray(info["coverage_distance"]))
+
+
 def test_trap_margin_charges_the_shaping_on_a_ramp_from_the_margin_to_contact(tiny_ppo_config):
     """--trap-margin M: each rover pays --trap-shaping k times clip(1 - gap / M, 0, 1) per trap
     and step, the gap computed here in NumPy from the positions (distance less both radii):
