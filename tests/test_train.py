@@ -6,6 +6,7 @@ import csv
 import dataclasses
 import errno
 import json
+import math
 import os
 import shutil
 import signal
@@ -31,7 +32,7 @@ from roverswarm.evaluate import evaluate_run
 from roverswarm.learners import FAMILIES, offpolicy
 from roverswarm.learners.offpolicy import run_buffer
 from roverswarm.presets import REFERENCE, SWARM
-from roverswarm.runs import CHECKPOINT, LOCK, METRICS, Run, folder_lock, read_metrics
+from roverswarm.runs import CHECKPOINT, LOCK, METRICS, Run, folder_lock, read_metrics, write_csv
 from roverswarm.storage import atomic_write, trained_episodes
 from roverswarm.trainer import checkpoint_due, train
 
@@ -171,6 +172,27 @@ def test_ctrl_c_or_sigterm_saves_a_checkpoint_and_resume_finishes(tiny_config, t
     assert 0 < len(rows) < config.episodes // config.log_every * config.seeds
     assert main(["train", "--resume", str(out)]) == 0
     assert read_metrics(out / "metrics.csv")[-1]["episodes"] == config.episodes
+
+
+def test_a_run_resumed_by_a_version_with_other_metrics_keeps_its_rows(unbroken, tiny_config, tmp_path, signal_at_chunk):
+    """metrics.csv written by a version that had a column since dropped and lacked one since
+    added: the resumed run writes every column, NaN where a row has none, and the numbers of a
+    run never interrupted (the CSV writer had stopped it with a traceback)."""
+    disarm = signal_at_chunk(signal.SIGINT, chunk=2)
+    with pytest.raises(RunStopped, match="interrupted at episode 200"):
+        train(tiny_config, out=tmp_path, progress=False)
+    disarm()
+    old = [
+        {**{k: v for k, v in r.items() if k != "actor_loss"}, "retired": 1.0} for r in read_metrics(tmp_path / METRICS)
+    ]
+    write_csv(tmp_path / METRICS, old)
+    train(tiny_config, out=tmp_path, resume=True, progress=False)
+    rows = read_metrics(tmp_path / METRICS)
+    assert set(rows[0]) == set(unbroken.metrics[0]) | {"retired"} and len(rows) == len(unbroken.metrics)
+    assert all(math.isnan(r["actor_loss"]) and r["retired"] == 1.0 for r in rows[: len(old)])
+    assert all(math.isnan(r["retired"]) for r in rows[len(old) :])
+    kept = lambda rs: [{k: v for k, v in r.items() if k not in ("wall_seconds", "retired")} for r in rs]  # noqa: E731
+    assert kept(rows[len(old) :]) == kept(unbroken.metrics[len(old) :])
 
 
 def test_a_second_ctrl_c_stops_at_once_keeping_the_last_checkpoint(

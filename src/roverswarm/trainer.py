@@ -110,6 +110,14 @@ def _all_finite(tree: Any) -> bool:
     )
 
 
+def _same_columns(*tables: list[dict[str, float]]) -> list[list[dict[str, float]]]:
+    """``tables`` of metrics rows with every column of any of them, NaN where a row lacks one:
+    a run resumed by another version of roverswarm, whose metrics gained or lost a column,
+    keeps its earlier rows (the CSV writer refused rows of other keys, with a traceback)."""
+    columns = list(dict.fromkeys(c for table in reversed(tables) for c in table[0]))
+    return [[{c: r.get(c, math.nan) for c in columns} for r in table] for table in tables]
+
+
 def _diverged(what: str, episodes: int, out: Path | None) -> RunStopped:
     kept = (
         f"the last good checkpoint in '{out}' is kept"
@@ -302,6 +310,8 @@ def _train(
                 new_rows = metric_rows(config, metrics, episodes, seconds)
                 if not all(math.isfinite(v) for r in new_rows for v in r.values()):
                     raise _diverged("loss or reward", episodes, out)
+                if rows and set(new_rows[0]) != set(rows[0]):  # resuming a run of another version
+                    rows, new_rows = _same_columns(rows, new_rows)
                 rows.extend(new_rows)
                 spent += seconds
                 if writer is not None:
