@@ -471,6 +471,14 @@ def test_a_full_disk_keeps_the_previous_file_and_leaves_no_temporary_one(tiny_co
         atomic_write(path, full, binary=True)
     assert path.read_bytes() == b"the previous checkpoint" and not list(tmp_path.glob("*.tmp"))
 
+    def interrupted(f):  # a second Ctrl-C while a checkpoint is written
+        f.write(b"half")
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        atomic_write(path, interrupted, binary=True)
+    assert path.read_bytes() == b"the previous checkpoint" and not list(tmp_path.glob("*.tmp"))
+
     def no_space(writer):
         raise OSError(errno.ENOSPC, "No space left on device")
 

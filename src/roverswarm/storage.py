@@ -122,8 +122,10 @@ def atomic_write(path: Path, write: Callable[[IO], None], binary: bool = False) 
     was, and :class:`UserError` says so."""
     try:
         os.replace(_write_temporary(path, write, binary), path)
-    except OSError as error:
+    except BaseException as error:  # also a second Ctrl-C mid-write: no temporary file left (a checkpoint's are GBs)
         path.with_name(path.name + ".tmp").unlink(missing_ok=True)
+        if not isinstance(error, OSError):
+            raise
         kept = "the previous version is kept" if path.exists() else "nothing was written"
         raise UserError(f"cannot write '{path}' ({error.strerror or error}); {kept}") from error
 
@@ -147,9 +149,11 @@ def atomic_write_files(contents: dict[Path, str | bytes]) -> None:
         blocked = next((p for p in contents if p.is_dir()), None)  # the one rename that fails in a writable folder
         if blocked is not None:
             raise IsADirectoryError(errno.EISDIR, "is a folder", str(blocked))
-    except OSError as error:
+    except BaseException as error:
         for path in contents:
             path.with_name(path.name + ".tmp").unlink(missing_ok=True)
+        if not isinstance(error, OSError):
+            raise
         where = error.filename or "a file"
         raise UserError(f"cannot write '{where}' ({error.strerror or error}); no file was changed") from error
     for tmp, path in zip(temporary, contents):
