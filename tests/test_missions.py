@@ -460,19 +460,22 @@ def test_training_a_lone_rover_with_failures_is_refused(tmp_path, capsys):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("checkpoint", [True, False], ids=["run", "killed-before-its-checkpoint"])
 @pytest.mark.parametrize("command", ["run", "stress"])
-def test_the_mission_commands_refuse_an_out_folder_holding_a_training_run(command, tmp_path, capsys):
+def test_the_mission_commands_refuse_an_out_folder_holding_a_training_run(command, checkpoint, tmp_path, capsys):
     """`--policy RUN --out RUN` overwrote the run's metrics.csv, and `train --resume RUN` then found
-    it damaged: a folder with a run's config.json and checkpoint.npz is refused, before any work."""
+    it damaged: a folder with a run's config.json is refused, before any work, with its
+    checkpoint or without (a run killed before its first, which `train` would start anew)."""
     run = tmp_path / "run"
     run.mkdir()
-    for name in ("config.json", "checkpoint.npz", "metrics.csv"):
+    names = ["checkpoint.npz", "config.json", "metrics.csv"] if checkpoint else ["config.json", "metrics.csv"]
+    for name in names:
         (run / name).write_text(f"the run's {name}")
     assert main(["mission", command, str(EXAMPLES / "mission.yaml"), "--episodes", "2", "--out", str(run)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "Traceback" not in err, err
-    assert f"--out: '{run}' holds a training run (config.json and checkpoint.npz)" in err
-    assert sorted(p.name for p in run.iterdir()) == ["checkpoint.npz", "config.json", "metrics.csv"]
+    assert f"--out: '{run}' holds a training run (its config.json)" in err
+    assert sorted(p.name for p in run.iterdir()) == names
     assert (run / "metrics.csv").read_text() == "the run's metrics.csv"
 
 

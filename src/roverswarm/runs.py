@@ -103,8 +103,8 @@ def check_not_run(out: Path) -> None:
     """:class:`UserError` if the output folder ``out`` (``--out``) holds a training run, whose
     files (``metrics.csv``, ...) another command's outputs would overwrite or mix with."""
     require(
-        not holds_run(out),
-        f"--out: '{out}' holds a training run (config.json and checkpoint.npz), whose files these outputs "
+        not (out / CONFIG).exists(),  # with its checkpoint, or a run killed before its first
+        f"--out: '{out}' holds a training run (its config.json), whose files these outputs "
         "would overwrite or mix with; give --out a folder of its own",
     )
 
