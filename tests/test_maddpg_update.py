@@ -2,8 +2,8 @@
 
 The reference below is written independently of ``roverswarm.algos.maddpg``: a Python loop
 over agents (no vmap), its own MLP forward pass read straight from the Flax parameter dicts,
-its own global-norm clipping and a hand-written first Adam step (optax defaults, zero
-moments). On a fixed random batch (some transitions terminated, target networks perturbed
+its own global-norm clipping and a hand-written Adam step (optax defaults) from the moments
+of one earlier update. On a fixed random batch (some transitions terminated, target networks perturbed
 away from the online ones) and for both algorithms (``maddpg``: centralised critic over all
 observations and actions; ``ddpg``: the agent's own), with and without importance weights,
 with policy ensembles (K sub-policies, one batch per partition, eq. 9-11) and inferred
@@ -484,6 +484,8 @@ def case(request):
     weights = jnp.asarray(rng.uniform(0.1, 2.0, (N * K, B)), jnp.float32) if weighted else None
     step = jax.jit(update, static_argnums=0)
     state = step(cfg, state, random_batch(rng, K), weights, RECENT, jax.random.PRNGKey(8))[0]  # the moments
+    adam = state.critic_opt[1][0]
+    assert (np.asarray(adam.count) == 1).all() and max(float(np.abs(m).max()) for m in jax.tree.leaves(adam.mu)) > 0
     new_state, info = step(cfg, state, batch, weights, RECENT, KEY)
     return cfg, state, batch, weights, new_state, info, reference_update(cfg, state, batch, weights)
 

@@ -67,15 +67,17 @@ class Result:
 
 class _StopFlag:
     """Turns Ctrl-C (SIGINT) and SIGTERM (schedulers, Ray) into a flag the host loop checks
-    between chunks (in the main thread only), and says so; the first signal puts the previous
-    handlers back, so a second one stops at once (Ctrl-C: KeyboardInterrupt). A job of
-    ``reproduce`` or ``sweep`` starts with SIGINT ignored, so it goes on ignoring its parent's
-    repeated requests, and says nothing: the parent does."""
+    between chunks (in the main thread only); with ``announce`` (a command at a terminal) the
+    first signal says so at once (a job of ``reproduce`` or ``sweep``, without a progress
+    bar, does not: its parent speaks for it). Further signals change nothing: the chunk in
+    flight runs in XLA, and leaving Python under it crashed the interpreter (a second Ctrl-C
+    that raised KeyboardInterrupt ended in a segmentation fault after the chunk anyway)."""
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
-    def __init__(self):
+    def __init__(self, announce: bool = False):
         self.raised = False
+        self.announce = announce
         self._previous: dict[int, object] = {}
 
     def __enter__(self):
@@ -86,21 +88,32 @@ class _StopFlag:
         return self
 
     def _handle(self, signum, frame):
-        self.raised = True
-        ignored = self._previous.get(signum) is signal.SIG_IGN  # a job of reproduce or sweep: its parent speaks
-        self.__exit__()  # a second signal acts as it did before: Ctrl-C stops at once
-        name = signal.Signals(signum).name
-        if not ignored:
-            print(
-                f"\nroverswarm: {name}: stopping after this chunk, with a checkpoint "
-                f"({name} again stops at once; the last checkpoint saved is kept)",
-                file=sys.stderr,
-            )
+        first, self.raised = not self.raised, True
+        if first and self.announce:
+            name = signal.Signals(signum).name
+            try:  # a closed stderr (`| tee` killed by the same Ctrl-C) must not cost the checkpoint
+                print(
+                    f"\nroverswarm: {name}: stopping after this chunk, with a checkpoint (SIGKILL stops "
+                    "at once, keeping the last checkpoint saved)",
+                    file=sys.stderr,
+                    flush=True,
+                )
+            except (OSError, ValueError):
+                pass
 
     def __exit__(self, *exc):
         for sig, previous in self._previous.items():
-            signal.signal(sig, previous)
-        self._previous = {}
+            if previous is not None:  # None: a handler not set from Python, which cannot be put back
+                signal.signal(sig, previous)
+
+
+def _wait(tree: Any) -> None:
+    """Until every array of ``tree`` is computed, waiting in Python: a signal's handler runs only
+    when the main thread is in Python, which a blocking read of a chunk's results (minutes,
+    in XLA) would hold back to the chunk's end."""
+    leaves = jax.tree.leaves(tree)
+    while not all(x.is_ready() for x in leaves):
+        time.sleep(0.02)
 
 
 def _all_finite(tree: Any) -> bool:
@@ -292,7 +305,7 @@ def _train(
         disable=not progress,
     )
     try:
-        with bar, _StopFlag() as stop:
+        with bar, _StopFlag(announce=progress) as stop:
             task = bar.add_task(
                 f"{config.learner.algo} {config.env_name()}",
                 total=config.episodes,
@@ -304,6 +317,7 @@ def _train(
             for chunk in range(first, chunks):
                 start = time.perf_counter()
                 runner, metrics = family.run_chunk(program, params, runner, total)
+                _wait(metrics)
                 metrics = jax.device_get(metrics)
                 seconds = time.perf_counter() - start
                 episodes = (chunk + 1) * config.log_every
@@ -317,7 +331,7 @@ def _train(
                 if writer is not None:
                     for r in new_rows:
                         for k, v in r.items():
-                            if k not in ("seed", "episodes"):
+                            if k not in ("seed", "episodes") and math.isfinite(v):  # NaN: a column of an older version
                                 writer.add_scalar(f"seed_{int(r['seed'])}/{k}", v, episodes)
                 if on_chunk is not None and on_chunk(episodes):
                     stop.raised = True
@@ -335,10 +349,10 @@ def _train(
                     if not _all_finite(runner.learner):  # the chunk's last update, which no loss saw yet
                         raise _diverged("network parameters", episodes, out)
                     unfinished = chunk + 1 < chunks  # a finished run's replay is dropped (most of the file)
-                    if config_due:
+                    save_checkpoint(out / CHECKPOINT, runner, replay=unfinished, config_json=config_to_json(config))
+                    if config_due:  # after the checkpoint: lost between the two, resume names the new --episodes
                         write_text(out / CONFIG, config_to_json(config))
                         config_due = False
-                    save_checkpoint(out / CHECKPOINT, runner, replay=unfinished, config_json=config_to_json(config))
                     saved_at = time.monotonic()
                 if stop.raised and not last:
                     if out is not None:

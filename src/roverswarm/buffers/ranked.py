@@ -49,8 +49,8 @@ Between refreshes:
   ``schaul`` reading each has the weight of their average rank at the top, ((n + 1) / 2)^-alpha,
   beside the ranked ones' weights of the last refresh, which the next refresh lowers, ranking
   them below the n new ones: little for most, much at the head; at M = 1e6, alpha = 0.7 and
-  n = 1000 the top 1000 ranked transitions draw 10.8% of the ranked part before and 2.9%
-  after, the top one 120 times less, while the new ones' 5.8% becomes 11.4%);
+  n = 1000 the top 1000 ranked transitions draw 10.8% of all draws before and 2.9% after,
+  the top one 120 times less, while the new ones' 5.8% becomes 11.4%);
 * losses written back since the refresh wait for the next one;
 * once the buffer is full, the slots overwritten since the refresh no longer hold the
   transitions that were ranked: a draw of the table that lands on one is redrawn among the
