@@ -181,7 +181,8 @@ def test_a_run_ends_at_its_budget_and_a_larger_budget_continues_it(
     config = tiny_config if family == "maddpg" else tiny_ppo_config
     config = dataclasses.replace(config, episodes=4 * config.log_every, budget_minutes=1.0)
     clock = iter(range(0, 10_000, 30))
-    monkeypatch.setattr(trainer, "time", SimpleNamespace(perf_counter=lambda: next(clock), monotonic=time.monotonic))
+    fake = SimpleNamespace(perf_counter=lambda: next(clock), monotonic=time.monotonic, sleep=time.sleep)
+    monkeypatch.setattr(trainer, "time", fake)
 
     def trained() -> int:
         with np.load(tmp_path / CHECKPOINT) as data:
