@@ -74,3 +74,8 @@ roverswarm reproduce --out "$out/reference-k1-schaul-fixed" --scenarios paper-2 
   --algorithms maddpg maddpg-optimizer --variants "${variants[2]}"
 roverswarm reproduce --out "$out/reference-k1-schaul-fixed-n45" --scenarios paper-4 paper-5 --episodes 20000 \
   --algorithms maddpg maddpg-optimizer --variants "${variants[2]}"
+# The K = 3 part's schaul arm after the fix, beside plain MADDPG trained anew: N = 4 ran on
+# 2026-12-02 (session 61); this line adds N = 5 to its folder (about 1.5 hours), keeping N = 4's
+# runs. --time-chunks 0: the time column from the runs' own chunks (both arms trained side by side).
+roverswarm reproduce --out "$out/reference-k3-schaul-fixed" --scenarios paper-4 paper-5 --ensemble 3 --time-chunks 0 \
+  --episodes 20000 --algorithms maddpg maddpg-optimizer --variants "${variants[2]}"
