@@ -379,7 +379,7 @@ def main(argv: list[str] | None = None) -> int:
     except RunStopped as stopped:
         print(f"roverswarm: stopped: {stopped}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:  # a second Ctrl-C during training, or one before or after it: files are written whole
+    except KeyboardInterrupt:  # a Ctrl-C outside training's chunks (loading, evaluating): files are written whole
         print("roverswarm: interrupted; what was saved before is kept", file=sys.stderr)
         return 130
     return 0

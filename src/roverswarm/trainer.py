@@ -270,7 +270,6 @@ def _train(
                 not (out / CHECKPOINT).exists(),
                 f"'{out}' already holds a run; continue it with --resume or choose another --out",
             )
-            # a mission's outputs, say: a run (even one stopped before its checkpoint) writes config.json first
             # a finished or stopped run always has its checkpoint: one whose checkpoint was removed
             # (to save space) keeps its curve and metrics as its record
             require(
@@ -278,6 +277,7 @@ def _train(
                 f"'{out}' holds a run's {METRICS} and {CURVE} but no {CHECKPOINT} (removed?), which training "
                 "would overwrite; choose another --out",
             )
+            # a mission's outputs, say: a run (even one stopped before its checkpoint) writes config.json first
             require(
                 not (out / METRICS).exists() or (out / CONFIG).exists(),
                 f"'{out}' holds another command's {METRICS} (no {CONFIG}: not a training run), which training "
