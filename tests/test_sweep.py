@@ -28,7 +28,7 @@ from roverswarm.experiments.sweep import (
     sweep,
 )
 from roverswarm.rollout import rollout
-from roverswarm.runs import Run, write_csv
+from roverswarm.runs import Run, read_metrics, write_csv
 
 TINY_PPO = dict(num_envs=4, log_every=100, checkpoint_every=1, hidden=[16], epochs=2, minibatches=2)
 TINY = dict(num_envs=4, batch_size=64, buffer_size=4000, warmup=500, log_every=100, checkpoint_every=1, hidden=[32, 32])
@@ -151,6 +151,31 @@ def test_an_evaluation_is_kept_until_the_run_is_trained_further(finished, tmp_pa
         write_csv(run.folder / "evaluation.csv", rows)
         assert evaluation(run, 50) == [{**fresh[0], "episodes": 50, "trained_episodes": 400}]
     assert calls == [50, 50] and read_table(run.folder / "evaluation.csv") == evaluation(run, 50)
+
+
+def test_rows_past_the_checkpoint_count_nowhere(finished, tmp_path):
+    """An extension killed between its metrics.csv and its checkpoint leaves rows of episodes
+    never saved: the sweep table, Table I's curves, the progress and the evaluation's key read
+    the checkpoint's rows only, and the run stays finished."""
+    import dataclasses
+    import shutil
+
+    from roverswarm.experiments.arms import episodes_done, status
+    from roverswarm.experiments.results import load
+    from roverswarm.experiments.sweep import table_row
+
+    config, _ = finished
+    saved = load_sweep(config.file, config.out)[1]
+    run = dataclasses.replace(saved, folder=shutil.copytree(saved.folder, tmp_path / "run"))
+    rows = read_metrics(run.folder / "metrics.csv")
+    ahead = [{**r, "episodes": r["episodes"] + 100, "episode_reward": 1e6, "wall_seconds": 1e6} for r in rows[-2:]]
+    write_csv(run.folder / "metrics.csv", rows + ahead)
+    evaluated = evaluation(saved, 50)
+    assert table_row(run, evaluated) == table_row(saved, evaluated)
+    assert episodes_done(run) == 400 and status(run) == "done"
+    ours, theirs = load(run, {}), load(saved, {})
+    np.testing.assert_array_equal(ours.curves, theirs.curves)
+    np.testing.assert_array_equal(ours.chunk_seconds, theirs.chunk_seconds)
 
 
 @pytest.mark.skipif(len(usable_cpus()) < 2, reason="needs 2 CPUs")

@@ -21,12 +21,10 @@ from roverswarm.presets import PRESETS
 from roverswarm.runs import (
     CHECKPOINT,
     CONFIG,
-    METRICS,
     Run,
     budget_spent,
     check_rollout_memory,
     checkpointed_rows,
-    read_metrics,
     training_seconds,
 )
 
@@ -292,8 +290,10 @@ def plan(config: ReproduceConfig, base: TrainConfig | None = None) -> list[GridR
 
 
 def run_rows(run: GridRun) -> list[dict[str, float]]:
-    """The metrics rows ``run``'s folder holds so far."""
-    return read_metrics(run.folder / METRICS) if (run.folder / METRICS).exists() else []
+    """The metrics rows of ``run``'s checkpoint (none before its first): ``metrics.csv`` may run
+    a chunk ahead of it where training was killed between the two (an extension's rows past a
+    finished run's end), and those episodes were never saved."""
+    return checkpointed_rows(run.folder)[1] if (run.folder / CHECKPOINT).exists() else []
 
 
 def status(run: GridRun) -> Literal["done", "partial", "new"]:
@@ -320,7 +320,7 @@ def status(run: GridRun) -> Literal["done", "partial", "new"]:
         )
     if not (run.folder / CHECKPOINT).exists():
         return "new"
-    _, rows = checkpointed_rows(run.folder)
+    rows = run_rows(run)
     finished = sum(1 for r in rows if r["episodes"] == run.config.episodes) == run.config.seeds
     return "done" if finished or budget_spent(run.config, training_seconds(rows)) else "partial"
 

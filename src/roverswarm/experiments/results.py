@@ -38,9 +38,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from roverswarm.env.scenarios import get_scenario
-from roverswarm.experiments.arms import OPTIMIZERS, GridRun, optimizer_of
+from roverswarm.experiments.arms import OPTIMIZERS, GridRun, optimizer_of, run_rows
 from roverswarm.experiments.significance import holm, paired_change, pooled_change, relative_change
-from roverswarm.runs import METRICS, read_metrics
 
 PAPER_TABLE1: dict[int, tuple[float, float]] = {2: (1.42, 2.26), 3: (3.08, 2.50), 4: (4.71, 2.69), 5: (8.78, 1.79)}
 """The paper's Table I: N -> (% change in episode reward, % change in training time)."""
@@ -106,7 +105,7 @@ class RunResult:
 
 
 def load(run: GridRun, timed: dict[tuple[str, str], np.ndarray]) -> RunResult:
-    rows = read_metrics(run.folder / METRICS)
+    rows = run_rows(run)
     seeds = sorted({int(r["seed"]) for r in rows})
     curves = np.array([[r["episode_reward"] for r in rows if int(r["seed"]) == s] for s in seeds])
     first = [r for r in rows if int(r["seed"]) == seeds[0]]

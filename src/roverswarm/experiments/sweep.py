@@ -46,14 +46,22 @@ from rich.live import Live
 from roverswarm.config import validate_training, with_options
 from roverswarm.env.scenarios import scenario_sizes
 from roverswarm.errors import UserError, require, within
-from roverswarm.experiments.arms import Backend, GridRun, check_backend, check_evaluations, episodes_done, status
+from roverswarm.experiments.arms import (
+    Backend,
+    GridRun,
+    check_backend,
+    check_evaluations,
+    episodes_done,
+    run_rows,
+    status,
+)
 from roverswarm.experiments.live import Summary
 from roverswarm.experiments.pool import default_jobs, train_runs
 from roverswarm.experiments.remote import run_ray
 from roverswarm.limits import check_memory, open_limited, read_limited, safe_name, training_parts
 from roverswarm.parsing import load_text
 from roverswarm.presets import PRESETS
-from roverswarm.runs import METRICS, folder_lock, markdown_table, read_metrics, training_seconds, write_csv
+from roverswarm.runs import folder_lock, markdown_table, training_seconds, write_csv
 from roverswarm.storage import save_figure, write_text
 
 EVALUATION = "evaluation.csv"
@@ -168,7 +176,7 @@ def table_row(run: GridRun, rows: list[dict[str, object]]) -> dict[str, object]:
     seeds = [r for name, r in by_name.items() if name not in ("random", "oracle")]
     scores = np.array([float(r["normalized_score"]) for r in seeds])
     mean = lambda key: float(np.mean([float(r[key]) for r in seeds]))  # noqa: E731
-    minutes = training_seconds(read_metrics(run.folder / METRICS)) / 60
+    minutes = training_seconds(run_rows(run)) / 60
     return {
         "scenario": run.scenario,
         "setting": run.algorithm,
