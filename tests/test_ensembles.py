@@ -12,6 +12,7 @@ import signal
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 from scipy import stats
 from test_ranked import N, transitions
@@ -257,6 +258,44 @@ def test_the_inferred_policies_learn_the_other_agents(tiny_config):
         rows = [r for r in result.metrics if r["seed"] == seed and r["critic_loss"] > 0]
         assert len(rows) >= 3 and all(np.isfinite(r["infer_error"]) and r["infer_error"] > 0 for r in rows)
         assert rows[-1]["infer_loss"] < 0.5 * rows[0]["infer_loss"], [r["infer_loss"] for r in rows]
+
+
+def test_the_approximations_learn_what_each_other_agent_does_in_each_state():
+    """Eq. 7 on its own: agent 0 fits its approximations to three other agents acting by fixed
+    policies of their own (``tanh`` of a random linear map of their observations). The means
+    come to explain nearly all of each agent's actions (where a constant, e.g. a log-std that
+    only shrank, explains none), the std shrinks towards the small error left, and agent 0's
+    approximation of itself is never moved."""
+    from roverswarm.algos.inference import approx_actions, fit_approximations, gaussian_policies
+
+    n, obs_size, batch, hidden = 4, 6, 256, (32,)
+    optimizer = optax.adam(1e-2)
+    keys = jax.random.split(jax.random.PRNGKey(0), n + 1)
+    approx = jax.vmap(lambda k: gaussian_policies(hidden).init(k, jnp.zeros((1, obs_size))))(keys[:n])
+    maps = jax.random.normal(keys[n], (n, obs_size, 2)) / np.sqrt(obs_size)  # each agent's own policy
+
+    def data(key):
+        obs = jax.random.normal(key, (batch, n, obs_size))
+        actions = jnp.tanh(jnp.einsum("bno,noa->bna", obs, maps))
+        return Transition(obs=obs, actions=actions, rewards=None, next_obs=None, terminated=None)
+
+    @jax.jit
+    def fit(approx, approx_opt, key):
+        batch = data(key)
+        approx, approx_opt, loss = fit_approximations(hidden, optimizer, 1e-3, approx, approx_opt, jnp.int32(0), batch)
+        return approx, approx_opt, loss
+
+    approx_opt, first = jax.vmap(optimizer.init)(approx), approx
+    for step in range(400):
+        approx, approx_opt, loss = fit(approx, approx_opt, jax.random.PRNGKey(step + 1))
+    test = data(jax.random.PRNGKey(10_000))
+    mean, log_std = approx_actions(hidden, approx, test.obs)  # [B, N, A]
+    error = np.square(np.asarray(mean - test.actions)).mean(axis=(0, 2))
+    spread = np.asarray(test.actions).var(axis=0).mean(-1)
+    assert (error[1:] < 0.05 * spread[1:]).all(), (error, spread)  # R^2 above 0.95 for every other agent
+    assert (np.asarray(log_std)[:, 1:] < -1.5).all()  # from 0: std under a quarter of where it started
+    for got, start in zip(jax.tree.leaves(approx), jax.tree.leaves(first)):
+        np.testing.assert_array_equal(got[0], start[0])
 
 
 def test_ensemble_run_resumes_to_the_same_numbers(ensemble_run, tmp_path, signal_at_chunk):
