@@ -255,6 +255,47 @@ def test_figures_and_report(finished):
     assert "| 3 | MADDPG + optimizer |" in report
 
 
+def test_the_figures_draw_each_arms_numbers_at_its_size():
+    """Figure 8's bars are each arm's mean over seeds (maximum reward, seconds per 1000
+    episodes) at the tick of its N, an arm missing at one N leaving no bar there; figure 9's
+    lines are each arm's mean curve on its own panel. Made-up results, so every number is known."""
+    from types import SimpleNamespace
+
+    from matplotlib.container import BarContainer
+
+    from roverswarm.experiments.figures import figure8, figure9
+    from roverswarm.experiments.results import RunResult, label
+
+    rng = np.random.default_rng(0)
+    episodes = np.arange(1, 5) * 1000.0
+
+    def result(n, algorithm):
+        run = SimpleNamespace(algorithm=algorithm, config=SimpleNamespace(seeds=3))
+        curves, seconds = rng.normal(-50 * n, 5, (3, 4)), rng.uniform(10, 20, 3) * n
+        return RunResult(run=run, rovers=n, episodes=episodes, curves=curves, chunk_seconds=seconds)
+
+    arms = {2: ("maddpg", "maddpg-optimizer", "ddpg"), 3: ("maddpg", "maddpg-optimizer")}  # no DDPG at N = 3
+    results = [result(n, a) for n, algorithms in arms.items() for a in algorithms]
+    reward, time = figure8(results).axes
+    assert [t.get_text() for t in reward.get_xticklabels()] == ["N = 2", "N = 3"]
+    for ax, value in ((reward, lambda r: r.best), (time, lambda r: r.seconds)):
+        bars = {c.get_label(): c.patches for c in ax.containers if isinstance(c, BarContainer)}
+        assert set(bars) == {label(a) for a in arms[2]}
+        for algorithm in arms[2]:
+            mine, drawn = [r for r in results if r.run.algorithm == algorithm], bars[label(algorithm)]
+            assert [round(p.get_x() + p.get_width() / 2) for p in drawn] == [r.rovers - 2 for r in mine]  # its N's tick
+            np.testing.assert_allclose([p.get_height() for p in drawn], [value(r).mean() for r in mine], rtol=1e-6)
+    panels = figure9(results).axes
+    assert [ax.get_title() for ax in panels[:2]] == ["N = 2 (3 seeds)", "N = 3 (3 seeds)"]
+    for ax, n in zip(panels, arms):
+        lines = {line.get_label(): line for line in ax.get_lines()}
+        assert set(lines) == {label(a) for a in arms[n]}
+        for r in (r for r in results if r.rovers == n):
+            line = lines[label(r.run.algorithm)]
+            np.testing.assert_allclose(line.get_ydata(), r.curves.mean(axis=0))
+            np.testing.assert_array_equal(line.get_xdata(), episodes)
+
+
 def test_an_interrupted_grid_finishes_only_the_missing_runs(base, finished, tmp_path, monkeypatch):
     real = pool_module.train
     calls = []

@@ -1,15 +1,12 @@
 """Figures 8 and 9 of the paper from a grid's results: the optimizer's effect per N as bars,
-and every arm's learning curves."""
+and every arm's learning curves. Each returns its matplotlib figure (the report saves it)."""
 
 from __future__ import annotations
-
-from pathlib import Path
 
 import numpy as np
 
 from roverswarm.experiments.results import RunResult, arm_order, label
 from roverswarm.experiments.significance import mean_interval
-from roverswarm.storage import save_figure
 
 
 def _figure(width: float, height: float, panels: tuple[int, int]):
@@ -21,7 +18,7 @@ def _figure(width: float, height: float, panels: tuple[int, int]):
     return fig, fig.subplots(*panels, squeeze=False)
 
 
-def figure8(results: list[RunResult], path: Path) -> None:
+def figure8(results: list[RunResult]):
     """(a) maximum mean episode reward and (b) time per 1000 episodes, per N and algorithm."""
     fig, axes = _figure(11, 4, (1, 2))
     sizes = sorted({r.rovers for r in results})
@@ -58,10 +55,10 @@ def figure8(results: list[RunResult], path: Path) -> None:
         ax.set_ylabel(ylabel)
         ax.legend(fontsize=8)
     fig.tight_layout()
-    save_figure(fig, path)
+    return fig
 
 
-def figure9(results: list[RunResult], path: Path) -> None:
+def figure9(results: list[RunResult]):
     """Mean episode reward curves per N: mean over seeds with a 95% band, one line per algorithm."""
     sizes = sorted({r.rovers for r in results})
     cols = min(2, len(sizes))
@@ -81,4 +78,4 @@ def figure9(results: list[RunResult], path: Path) -> None:
     for j in range(len(sizes), rows * cols):
         axes[j // cols][j % cols].set_visible(False)
     fig.tight_layout()
-    save_figure(fig, path)
+    return fig

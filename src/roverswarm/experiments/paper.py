@@ -23,7 +23,7 @@ from roverswarm.experiments.timing import chunk_seconds
 from roverswarm.jaxcache import release_compiled_programs
 from roverswarm.learners import learner_family
 from roverswarm.runs import folder_lock, write_csv
-from roverswarm.storage import write_text
+from roverswarm.storage import save_figure, write_text
 
 
 def time_arms(config: ReproduceConfig, runs: list[GridRun]) -> dict[tuple[str, str], np.ndarray]:
@@ -92,6 +92,6 @@ def _reproduce(config: ReproduceConfig, base: TrainConfig | None, live: bool) ->
     write_csv(config.out / "table1.csv", rows, TABLE1_COLUMNS)
     write_csv(config.out / "final_policies.csv", final)
     write_text(config.out / "table1.md", table1_markdown(rows))
-    figure8(results, config.out / "fig8.png")
-    figure9(results, config.out / "fig9.png")
+    save_figure(figure8(results), config.out / "fig8.png")
+    save_figure(figure9(results), config.out / "fig9.png")
     return write_report(config, results, rows, final, time.perf_counter() - start)
