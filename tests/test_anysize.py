@@ -549,15 +549,25 @@ def test_one_policy_learns_two_sizes_and_beats_random_by_a_wide_margin(tmp_path)
 
 
 def test_a_size_agnostic_run_drives_a_mission_of_another_size(anysize_run, tmp_path):
-    """The mission file's swarm (a layout of its own) is driven by the policy trained on
-    paper-2..4, with and without a rover failure."""
+    """The outpost mission's eight rovers (a size and a layout the run never trained on: paper-2..4)
+    are driven by the run's seed 0, with and without a rover failure, beside the oracle: its
+    rows without failure are those of the run's policy rolled out on the mission directly."""
+    from roverswarm.env.missions import load_mission
+    from roverswarm.rollout import MissionStats, rollout
     from roverswarm.stress import stress_mission
 
-    rows = stress_mission(
-        Path(__file__).parents[1] / "examples" / "survey.yaml", str(anysize_run), tmp_path, episodes=20
-    )
-    assert {r["condition"] for r in rows} == {"no failure", "one rover fails"}
-    assert all(0 <= r["success"] <= 1 for r in rows)
+    outpost = Path(__file__).parents[1] / "examples" / "outpost.yaml"
+    rows = stress_mission(outpost, str(anysize_run), tmp_path, episodes=20)
+    params = load_mission(outpost).params
+    assert params.num_rovers == 8
+    assert [(r["policy"] == "oracle", r["condition"]) for r in rows] == [
+        (False, "no failure"),
+        (False, "one rover fails"),
+        (True, "no failure"),
+        (True, "one rover fails"),
+    ]
+    direct = MissionStats.of(rollout(Run(anysize_run).policy(0), jax.random.PRNGKey(0), params, 20)).summary()
+    np.testing.assert_equal({k: v for k, v in rows[0].items() if k not in ("policy", "condition")}, direct)
 
 
 def test_evaluate_and_mission_stress_drive_the_policy_behind_the_shield(anysize_run, tmp_path, capsys, monkeypatch):
