@@ -253,6 +253,9 @@ def test_figures_and_report(finished):
     ):
         assert part in report
     assert "| 3 | MADDPG + optimizer |" in report
+    # the training time: every chunk's seconds of every run, read here with the csv module
+    seconds = sum(row["wall_seconds"] for path in finished.glob("runs/*/*/metrics.csv") for row in seed_rows(path)[0])
+    assert f"whichever command ran them): {seconds / 60:.1f} min." in report.replace("\n", " ")
 
 
 def test_the_figures_draw_each_arms_numbers_at_its_size():

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 
 from roverswarm.config import config_to_json
-from roverswarm.experiments.arms import OPTIMIZERS, ReproduceConfig, optimizer_of
+from roverswarm.experiments.arms import OPTIMIZERS, ReproduceConfig, optimizer_of, run_rows
 from roverswarm.experiments.results import LABELS, LAST_WINDOW, RunResult, arm_order, label, pooled_rows
 from roverswarm.experiments.significance import mean_interval, relative_change
-from roverswarm.runs import markdown_table
+from roverswarm.runs import markdown_table, training_seconds
 from roverswarm.storage import write_text
 
 
@@ -198,7 +198,7 @@ def write_report(
         cells = [f"{m:.2f} ± {h:.2f}" for m, h in map(mean_interval, (r.best, r.last, r.seconds))]
         body.append([str(r.rovers), label(r.run.algorithm), *cells])
     per_run = markdown_table(header, body)
-    training = sum(float(r.chunk_seconds.sum()) for r in results)
+    training = sum(training_seconds(run_rows(r.run)) for r in results)  # every chunk as it was timed
     shown = next((r.run for r in results if r.run.algorithm == "maddpg"), results[0].run)  # its config, in full
     example, example_label = shown.config, label(shown.algorithm)
     arms = ", ".join(label(a) for a in sorted(dict.fromkeys(r.run.algorithm for r in results), key=arm_order))
