@@ -26,7 +26,7 @@ from roverswarm.experiments.arms import plan
 from roverswarm.experiments.results import PAPER_TABLE1
 from roverswarm.experiments.significance import holm, paired_change, paired_p, relative_change
 from roverswarm.presets import MAPPO, PRESETS
-from roverswarm.runs import write_csv
+from roverswarm.runs import folder_lock, write_csv
 
 SCENARIOS = ("paper-2", "paper-3")
 ALGORITHMS = ("ddpg", "maddpg", "maddpg-optimizer")
@@ -331,6 +331,10 @@ def test_an_interrupted_grid_finishes_only_the_missing_runs(base, finished, tmp_
     assert calls == []
     forced = tiny_grid(tmp_path, scenarios=("paper-2",), algorithms=("ddpg",), force=True)
     (tmp_path / "timing.csv").write_text("scenario,arm,chunk,seconds_per_1000\npaper-2,ddpg,0,999.0\n")
+    with folder_lock(tmp_path / "runs" / "paper-2" / "ddpg"):  # another command writes the run: nothing deleted
+        with pytest.raises(UserError, match="is being written by process"):
+            reproduce(forced, base, live=False)
+    assert (tmp_path / "runs" / "paper-2" / "ddpg" / "checkpoint.npz").exists() and calls == []
     reproduce(forced, base, live=False)
     assert calls == [tmp_path / "runs" / "paper-2" / "ddpg"]
     # the earlier grid's timings went with its runs (Table I took them for the new grid's; this

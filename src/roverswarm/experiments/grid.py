@@ -12,6 +12,7 @@ worker dies; either way the files land in the same folders and the same report.
 from __future__ import annotations
 
 import shutil
+from contextlib import ExitStack
 from typing import Callable
 
 from rich.console import Console
@@ -25,6 +26,7 @@ from roverswarm.experiments.pool import default_jobs, train_runs
 from roverswarm.experiments.remote import run_ray
 from roverswarm.experiments.results import TIMING
 from roverswarm.limits import check_training_memory
+from roverswarm.runs import folder_lock
 
 
 def run_grid(config: ReproduceConfig, base: TrainConfig | None = None, live: bool = True) -> list[GridRun]:
@@ -36,9 +38,12 @@ def run_grid(config: ReproduceConfig, base: TrainConfig | None = None, live: boo
         check_training_memory(run.config, params)
     check_evaluations(runs, config.grid_eval_episodes)
     if config.force:  # once every run is checked: the runs, and the times taken with their settings
-        for run in runs:
-            if run.folder.exists():
-                shutil.rmtree(run.folder)
+        with ExitStack() as locks:  # none deleted while a command writes one (train --resume RUN)
+            existing = [run.folder for run in runs if run.folder.exists()]
+            for folder in existing:
+                locks.enter_context(folder_lock(folder))
+            for folder in existing:
+                shutil.rmtree(folder)
         (config.out / TIMING).unlink(missing_ok=True)
     done = {run.name for run in runs if status(run) == "done"}
     todo = [run for run in runs if run.name not in done]
