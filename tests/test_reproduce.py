@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import multiprocessing
 import os
 import shutil
@@ -184,6 +185,27 @@ def test_two_optimizer_variants_against_one_maddpg_arm(base, finished, tmp_path,
         scores = [r["normalized_score"] for r in evaluated if r["policy"] not in ("random", "oracle")]
         assert row["scores"] == " / ".join(f"{x:.2f}" for x in scores) and len(scores) == 2
     assert "## Final policies, deterministic evaluation" in report
+    # timing.csv serves the arms while their settings hold: an arm trained anew with other
+    # settings (its folder deleted, then refresh_every changed) has its scenario timed again
+    import roverswarm.experiments.paper as paper_module
+
+    timings = []
+    fake = lambda configs, chunks: timings.append([c.scenario for c in configs]) or [[1.0] * chunks for _ in configs]  # noqa: E731
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(paper_module, "chunk_seconds", fake)
+        runs = plan(grid, base)
+        assert paper_module.time_arms(grid, runs).keys() == timed.keys() and timings == []
+        changed = [
+            dataclasses.replace(r, config=with_options(r.config, {"refresh_every": 3}))
+            if (r.scenario, r.algorithm) == ("paper-3", "maddpg-optimizer-paper")
+            else r
+            for r in runs
+        ]
+        again = paper_module.time_arms(grid, changed)
+        paper_module.time_arms(grid, changed)  # the new settings kept: timed once
+        assert timings == [["paper-3"] * 3]
+    assert again[("paper-3", "maddpg")].tolist() == [1000 / base.log_every] * 2
+    np.testing.assert_array_equal(again[("paper-2", "maddpg")], timed[("paper-2", "maddpg")])
     assert main(["reproduce", "--out", str(tmp_path), "--variants", "bad:gamma=0.5"]) == 2
     assert "'gamma' in 'bad:gamma=0.5' is not an optimizer option" in capsys.readouterr().err
     assert main(["reproduce", "--out", str(tmp_path), "--variants", "a:alpha=x"]) == 2

@@ -6,13 +6,14 @@ report written (:mod:`~roverswarm.experiments.results`, :mod:`~roverswarm.experi
 from __future__ import annotations
 
 import csv
+import hashlib
 import time
 from pathlib import Path
 
 import numpy as np
 from rich.console import Console
 
-from roverswarm.config import TrainConfig
+from roverswarm.config import TrainConfig, config_to_json
 from roverswarm.experiments.arms import GridRun, ReproduceConfig
 from roverswarm.experiments.figures import figure8, figure9
 from roverswarm.experiments.grid import run_grid
@@ -26,31 +27,43 @@ from roverswarm.runs import folder_lock, write_csv
 from roverswarm.storage import save_figure, write_text
 
 
+def settings_of(config: TrainConfig) -> str:
+    """A fingerprint of a run's training settings (its replay's size, its learner, ...): an
+    arm's times in ``timing.csv`` count only while its settings are those it was timed with."""
+    return hashlib.sha256(config_to_json(config).encode()).hexdigest()[:16]
+
+
 def time_arms(config: ReproduceConfig, runs: list[GridRun]) -> dict[tuple[str, str], np.ndarray]:
     """(scenario, arm) -> seconds per 1000 episodes of ``config.grid_time_chunks`` chunks of every
     paper-learner arm, timed back to back per scenario (:func:`~roverswarm.experiments.timing.chunk_seconds`).
-    Kept in ``timing.csv``: a scenario whose arms were all timed is not timed again."""
+    Kept in ``timing.csv`` with each arm's :func:`settings_of`: a scenario whose arms were all
+    timed with their present settings is not timed again."""
     chunks = config.grid_time_chunks
     path = config.out / TIMING
     timed: dict[tuple[str, str], list[float]] = {}
+    settings: dict[tuple[str, str], str] = {}
     if chunks == 0:
         return {}
     if path.exists():
         try:
             with open(path, newline="") as f:
                 for row in csv.DictReader(f):
-                    timed.setdefault((row["scenario"], row["arm"]), []).append(float(row["seconds_per_1000"]))
-        except (ValueError, KeyError, TypeError):  # unreadable: time again
+                    key = (row["scenario"], row["arm"])
+                    timed.setdefault(key, []).append(float(row["seconds_per_1000"]))
+                    settings[key] = row["settings"]
+        except (ValueError, KeyError, TypeError):  # unreadable, or from before the settings were kept: time again
             timed = {}
     for scenario in config.scenarios:
         arms = [r for r in runs if r.scenario == scenario and learner_family(r.config.learner.algo).replay]
-        if all(len(timed.get((scenario, r.algorithm), [])) >= chunks for r in arms):
+        kept = (settings.get((scenario, r.algorithm)) == settings_of(r.config) for r in arms)
+        if all(kept) and all(len(timed.get((scenario, r.algorithm), [])) >= chunks for r in arms):
             continue
         Console().print(f"timing {scenario}: {len(arms)} arms x {chunks} chunks, back to back")
         for run, seconds in zip(arms, chunk_seconds([r.config for r in arms], chunks)):
             timed[(scenario, run.algorithm)] = [s * 1000 / run.config.log_every for s in seconds]
+            settings[(scenario, run.algorithm)] = settings_of(run.config)
         rows = [
-            {"scenario": s, "arm": a, "chunk": j, "seconds_per_1000": x}
+            {"scenario": s, "arm": a, "chunk": j, "seconds_per_1000": x, "settings": settings[(s, a)]}
             for (s, a), xs in timed.items()
             for j, x in enumerate(xs)
         ]
