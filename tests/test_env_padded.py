@@ -332,6 +332,9 @@ def test_bad_failure_rates_and_counts_are_refused():
         validate_params(params.replace(fail_rate=1.0, fail_count=0))
     with pytest.raises(UserError, match=r"active_rovers must be in \[1, 4\]"):
         validate_params(params.replace(active_rovers=5))
+    with pytest.raises(UserError, match="fail_rate above 0 needs at least 2 rovers in every episode.*got 1$"):
+        validate_params(params.replace(active_rovers=jnp.array([3, 1]), fail_rate=0.5))  # would lose the only rover
+    validate_params(params.replace(active_rovers=jnp.array([3, 1])))  # without failures, one rover is a swarm
     with pytest.raises(UserError, match="range of swarm sizes"):
         get_scenario("paper-2..4")
 

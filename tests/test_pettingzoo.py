@@ -50,6 +50,18 @@ def test_episode_truncates_after_25_steps_and_rewards_match_infos():
         env.step({})
 
 
+def test_state_before_reset_and_bad_seeds_are_refused():
+    env = RoverSwarmEnv("paper-2")
+    with pytest.raises(UserError, match=r"^state\(\) called before reset\(\)"):
+        env.state()
+    for seed in (1.5, -1, 2**32, True):
+        with pytest.raises(UserError, match=r"^reset\(seed=...\) must be an integer in \[0, 2\^32\)"):
+            env.reset(seed=seed)
+    first, _ = env.reset(seed=np.int64(3))  # NumPy's integers are seeds too
+    np.testing.assert_array_equal(first["rover_0"], env.reset(seed=3)[0]["rover_0"])
+    assert env.state().shape == (2 * first["rover_0"].size,)
+
+
 def test_missing_or_misshapen_actions_are_refused():
     env = RoverSwarmEnv("paper-2")
     env.reset(seed=0)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import io
 import math
+import numbers
 import os
 import re
 from dataclasses import dataclass, replace
@@ -149,7 +150,7 @@ def read_config(path: str | os.PathLike) -> TrainConfig:
 
 def check_seed(seed: object, flag: str = "--seed") -> int:
     """``seed`` if it is an integer in [0, 2^32) (what a PRNG key holds), else :class:`UserError`."""
-    ok = isinstance(seed, int) and not isinstance(seed, bool) and 0 <= seed < 2**32
+    ok = isinstance(seed, numbers.Integral) and not isinstance(seed, bool) and 0 <= seed < 2**32  # NumPy's too
     require(ok, f"{flag} must be an integer in [0, 2^32), got {seed!r}")
     return int(seed)  # type: ignore[arg-type]
 

@@ -21,6 +21,7 @@ from roverswarm.env.render import FrameRenderer
 from roverswarm.env.scenarios import get_scenario
 from roverswarm.env.validation import validate_params
 from roverswarm.errors import UserError
+from roverswarm.limits import check_seed
 
 
 def agent_names(num_rovers: int) -> list[str]:
@@ -82,7 +83,7 @@ class RoverSwarmEnv(ParallelEnv):
 
     def reset(self, seed: int | None = None, options: dict | None = None):
         if seed is not None:
-            self._key = jax.random.PRNGKey(seed)
+            self._key = jax.random.PRNGKey(check_seed(seed, "reset(seed=...)"))
         self._key, key = jax.random.split(self._key)
         obs, self._state = _reset(key, self.params)
         self.agents = list(self.possible_agents)
@@ -138,6 +139,8 @@ class RoverSwarmEnv(ParallelEnv):
 
     def state(self) -> np.ndarray:
         """Global state: every rover's observation, concatenated."""
+        if self._state is None:
+            raise UserError("state() called before reset(); call reset() first")
         return np.asarray(observe(self._state, self.params)).reshape(-1)
 
     def render(self) -> np.ndarray | None:

@@ -70,6 +70,13 @@ def validate_params(params: EnvParams) -> EnvParams:
         or bool(np.all((np.asarray(params.fail_rate) >= 0) & (np.asarray(params.fail_rate) <= 1))),
         f"fail_rate must be in [0, 1] (a probability per episode), got {params.fail_rate}",
     )
+    if params.fail_rate is not None and bool(np.any(np.asarray(params.fail_rate) > 0)):
+        rovers = params.num_rovers if params.active_rovers is None else np.min(params.active_rovers)
+        require(
+            rovers >= 2,
+            f"fail_rate above 0 needs at least 2 rovers in every episode (a failure would lose the only one), "
+            f"got {rovers}",
+        )
     require(
         isinstance(params.fail_count, int) and params.fail_count >= 1,
         f"fail_count must be an integer >= 1 (rovers failing at most per failure episode), got {params.fail_count}",
