@@ -720,6 +720,19 @@ def test_repeated_signals_during_jobs_stop_them_once_with_a_message(tmp_path):
     assert not list(tmp_path.rglob(".lock"))
 
 
+def test_a_signal_during_a_grid_in_this_process_is_answered_at_once(base, tmp_path, signal_at_chunk, capsys):
+    """--jobs 1 trains in the command's own process, with no progress bar: a Ctrl-C is still
+    announced when it comes (not only once the chunk has ended), and the run keeps its checkpoint."""
+    disarm = signal_at_chunk(signal.SIGINT, chunk=2)
+    try:
+        with pytest.raises(RunStopped, match="interrupted at episode 200"):
+            reproduce(tiny_grid(tmp_path, scenarios=("paper-2",), algorithms=("ddpg",)), base, live=False)
+    finally:
+        disarm()
+    assert " ".join(capsys.readouterr().err.split()).count("SIGINT: stopping after this chunk, with a checkpoint") == 1
+    assert (tmp_path / "runs" / "paper-2" / "ddpg" / "checkpoint.npz").exists()
+
+
 def test_default_jobs_follow_run_length_cpus_and_memory(base, tmp_path, monkeypatch):
     long = plan(tiny_grid(tmp_path, episodes=60_000), base)  # 6 runs, planned only
     short = plan(tiny_grid(tmp_path), base)

@@ -67,11 +67,12 @@ class Result:
 
 class _StopFlag:
     """Turns Ctrl-C (SIGINT) and SIGTERM (schedulers, Ray) into a flag the host loop checks
-    between chunks (in the main thread only); with ``announce`` (a command at a terminal) the
-    first signal says so at once (a job of ``reproduce`` or ``sweep``, without a progress
-    bar, does not: its parent speaks for it). Further signals change nothing: the chunk in
-    flight runs in XLA, and leaving Python under it crashed the interpreter (a second Ctrl-C
-    that raised KeyboardInterrupt ended in a segmentation fault after the chunk anyway)."""
+    between chunks (in the main thread only); with ``announce`` (a command at a terminal, a
+    grid's runs in its own process) the first signal says so at once (a job of ``reproduce``
+    or ``sweep`` in a process of its own does not: its parent speaks for it). Further signals
+    change nothing: the chunk in flight runs in XLA, and leaving Python under it crashed the
+    interpreter (a second Ctrl-C that raised KeyboardInterrupt ended in a segmentation fault
+    after the chunk anyway)."""
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
@@ -146,6 +147,7 @@ def train(
     resume: bool = False,
     progress: bool = True,
     on_chunk: Callable[[int], None] | None = None,
+    announce: bool | None = None,
 ) -> Result:
     """Train ``config.seeds`` seeds of ``config`` together and return the metrics and networks.
 
@@ -158,7 +160,9 @@ def train(
     (docs/training.md#a-wall-time-budget). Same config => identical metrics.
     ``on_chunk(episodes)`` is called after every chunk (e.g. to draw a summary of many runs
     instead of the bar); if it returns true, the run stops there as on Ctrl-C (a checkpoint,
-    then :class:`~roverswarm.errors.RunStopped`).
+    then :class:`~roverswarm.errors.RunStopped`). ``announce``: whether the first Ctrl-C or
+    SIGTERM says at once that training stops after the chunk (default: with the progress bar;
+    a grid's runs in its own process announce without one).
     """
     if config.mission is not None:  # kept absolute and with its content: resume and evaluate need not find the file
         config = with_mission_text(config)
@@ -170,9 +174,9 @@ def train(
         "give --out for runs of more than 10000 episodes, so that they can be resumed",
     )
     if out is None:
-        return _train(config, params, None, resume, progress, on_chunk)
+        return _train(config, params, None, resume, progress, on_chunk, announce)
     with folder_lock(Path(out)):  # one writer per run folder
-        return _train(config, params, Path(out), resume, progress, on_chunk)
+        return _train(config, params, Path(out), resume, progress, on_chunk, announce)
 
 
 def checkpoint_due(config: TrainConfig, chunks_done: int, saved_at: float) -> bool:
@@ -249,6 +253,7 @@ def _train(
     resume: bool,
     progress: bool,
     on_chunk: Callable[[int], None] | None,
+    announce: bool | None,
 ) -> Result:
     family = learner_family(config.learner.algo)
     rows: list[dict[str, float]] = []
@@ -305,7 +310,7 @@ def _train(
         disable=not progress,
     )
     try:
-        with bar, _StopFlag(announce=progress) as stop:
+        with bar, _StopFlag(announce=progress if announce is None else announce) as stop:
             task = bar.add_task(
                 f"{config.learner.algo} {config.env_name()}",
                 total=config.episodes,

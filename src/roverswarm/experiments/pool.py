@@ -25,8 +25,13 @@ def run_local(runs: list[GridRun], summary: Summary, keep_programs: bool = False
     for run in runs:
         resume = status(run) == "partial"
         summary.progress(run, episodes_done(run) if resume else 0)
-        train(
-            run.config, out=run.folder, resume=resume, progress=False, on_chunk=lambda e, r=run: summary.progress(r, e)
+        train(  # no bar (the summary shows every run), but a Ctrl-C is answered at once
+            run.config,
+            out=run.folder,
+            resume=resume,
+            progress=False,
+            on_chunk=lambda e, r=run: summary.progress(r, e),
+            announce=True,
         )
         release_compiled_programs(only_if_crowded=keep_programs)  # each run compiles its own programs
         summary.finish(run)
