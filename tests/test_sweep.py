@@ -176,6 +176,12 @@ def test_rows_past_the_checkpoint_count_nowhere(finished, tmp_path):
     ours, theirs = load(run, {}), load(saved, {})
     np.testing.assert_array_equal(ours.curves, theirs.curves)
     np.testing.assert_array_equal(ours.chunk_seconds, theirs.chunk_seconds)
+    # killed between the extension's first checkpoint and its config.json: refused, not finished
+    with np.load(run.folder / "checkpoint.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    np.savez(run.folder / "checkpoint.npz", **{**arrays, "episodes": np.asarray(500)})
+    with pytest.raises(UserError, match="other settings .500 episodes trained, more than 400: an extension stopped"):
+        status(run)
 
 
 @pytest.mark.skipif(len(usable_cpus()) < 2, reason="needs 2 CPUs")

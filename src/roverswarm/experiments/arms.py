@@ -313,6 +313,9 @@ def status(run: GridRun) -> Literal["done", "partial", "new"]:
         reason = f"{saved.episodes} episodes, more than {run.config.episodes}" if longer else ""
     except UserError as e:
         reason = str(e).removeprefix("--resume: ")
+    if not reason and (run.folder / CHECKPOINT).exists() and episodes_done(run) > run.config.episodes:
+        reason = f"{episodes_done(run)} episodes trained, more than {run.config.episodes}: an extension stopped"
+        reason += " before it saved its settings"
     if reason:
         raise UserError(
             f"'{run.folder}' holds a run with other settings ({reason}); delete that folder (reproduce --force "
