@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import re
+from types import SimpleNamespace
 
 import imageio.v3 as iio
 import jax
@@ -444,6 +445,66 @@ def test_a_sweep_on_ray_stops_on_a_signal_resumes_and_retries_a_killed_worker(fi
         {k: r[k] for k in columns} for r in local if r["setting"] != "mappo"
     ]
     assert not list(out.rglob(".lock"))
+
+
+class _Ref:
+    def __init__(self, value):
+        self.value = value
+
+
+class _InlineRay:
+    """Ray as ``run_ray`` uses it, each task done as it is sent: its result is ``results[name]``."""
+
+    exceptions = SimpleNamespace(RayError=RuntimeError)
+
+    def __init__(self, results):
+        self.results = results
+
+    def is_initialized(self):
+        return True
+
+    def remote(self, **options):
+        from roverswarm.experiments.remote import Board
+
+        def wrap(target):
+            if target is not Board:
+                return SimpleNamespace(remote=lambda config, files, board, name, start: _Ref(self.results[name]))
+            board = Board()
+            call = lambda method: SimpleNamespace(remote=lambda *a: _Ref(getattr(board, method)(*a)))  # noqa: E731
+            return SimpleNamespace(remote=lambda: SimpleNamespace(**{m: call(m) for m in ("ask", "report", "reports")}))
+
+        return wrap
+
+    def wait(self, refs, num_returns, timeout):
+        return refs[:num_returns], refs[num_returns:]
+
+    def get(self, ref):
+        return ref.value
+
+
+def test_an_error_on_one_ray_run_still_collects_the_other_runs_files(finished, tmp_path, monkeypatch):
+    """The command fails on one finished task's files or table row (here a damaged table):
+    every other task's run still comes back to its folder, then the error is raised."""
+    import dataclasses
+
+    from roverswarm.experiments import remote
+    from roverswarm.experiments.live import Summary
+
+    config, _ = finished
+    saved = load_sweep(config.file, config.out)
+    runs = [dataclasses.replace(r, folder=tmp_path / r.algorithm) for r in saved]
+    monkeypatch.setattr(
+        remote, "_ray", lambda: _InlineRay({r.name: (remote.read_files(r.folder), None) for r in saved})
+    )
+
+    def on_finish(run):
+        if run.name == runs[0].name:
+            raise UserError(f"'{run.folder}/evaluation.csv' is damaged")
+
+    with pytest.raises(UserError, match="evaluation.csv' is damaged"):
+        remote.run_ray(runs, Summary(runs, set()), None, 0, on_finish)
+    for run, original in zip(runs, saved):
+        assert remote.read_files(run.folder) == remote.read_files(original.folder)
 
 
 def test_a_ray_sweep_sends_nothing_while_a_run_folder_is_being_written(finished, tmp_path, capsys, monkeypatch):

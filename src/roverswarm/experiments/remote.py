@@ -123,7 +123,8 @@ def run_ray(
 
     :class:`UserError` if a run's folder is being written by another process (before anything
     is sent) or a task fails with one; :class:`~roverswarm.errors.RunStopped` after a signal or
-    a run that stopped on its own, once every task has ended."""
+    a run that stopped on its own, once every task has ended. An error here on one run's files
+    or row (a full disk) is raised the same way: once every other task's files are back."""
     with contextlib.ExitStack() as locks:
         for run in runs:  # every folder first: a run already being written sends nothing
             with within(f"run '{run.name}'"):
@@ -156,12 +157,16 @@ def run_ray(
                             continue
                         if result is not None:
                             files, stopped = result
-                            write_files(run.folder, files)
-                            if stopped is None:
-                                summary.finish(run)
-                                if on_finish is not None:
-                                    on_finish(run)
-                            elif not stop.asked:
+                            try:  # an error here (a full disk, a damaged table) leaves the others to collect
+                                write_files(run.folder, files)
+                                if stopped is None:
+                                    summary.finish(run)
+                                    if on_finish is not None:
+                                        on_finish(run)
+                            except (UserError, RunStopped, OSError) as error:
+                                failure = failure or error
+                                continue
+                            if stopped is not None and not stop.asked:
                                 failure = failure or RunStopped(f"run '{run.name}': {stopped}")
             finally:  # a task left running (this command failed) stops at its next chunk
                 if pending:
