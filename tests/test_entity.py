@@ -12,8 +12,8 @@ tokens) in every padded slot. The tests check that
 * one set of parameters serves N = 2, 5 and 10, and a swarm padded into a larger layout gets
   the same outputs as in its own;
 * a NumPy reference written from the module's equations (loops over views, heads, queries,
-  with the softmax over the real tokens only) gives the same encodings, actions, values and
-  Q-values within 1e-4, on the flax parameters (perturbed: no zero bias hides a mistake);
+  with the softmax over the real tokens only) gives the same encodings, actions and values
+  within 1e-4, on the flax parameters (perturbed: no zero bias hides a mistake);
 * the checks have teeth: unmasked inputs, the reference without masking or without the
   1/sqrt(d) scale, all disagree; the outputs differ from rover to rover.
 """
@@ -32,7 +32,6 @@ from roverswarm.algos.entity import (
     EntityConfig,
     EntityEncoder,
     make_entity_networks,
-    token_actions,
 )
 
 # d = dim / heads = 4; two blocks with LayerNorm exercise every parameter of the encoder
@@ -124,8 +123,8 @@ def nets():
 def params(nets):
     """Initialised, then every entry perturbed: at init the biases are zero and the LayerNorms
     the identity, which would hide a missing bias or a padded token's embedding."""
-    keys = dict(zip(("actor", "value", "critic"), jax.random.split(jax.random.PRNGKey(0), 3)))
-    inits = dict(actor=nets.init_actor, value=nets.init_value, critic=nets.init_critic)
+    keys = dict(zip(("actor", "value"), jax.random.split(jax.random.PRNGKey(0), 2)))
+    inits = dict(actor=nets.init_actor, value=nets.init_value)
     rng = np.random.default_rng(0)
     perturb = lambda x: x + 0.2 * rng.normal(size=x.shape).astype(np.float32)  # noqa: E731
     return {name: jax.tree.map(perturb, jax.jit(init)(keys[name])) for name, init in inits.items()}
@@ -138,21 +137,19 @@ def jitted(nets):
     return dict(
         actor=jax.jit(nets.actor),
         value=jax.jit(nets.value),
-        critic=jax.jit(nets.critic),
         encoder=jax.jit(lambda p, *view: encoder.apply({"params": p["params"]["encoder"]}, *view)),
     )
 
 
 @pytest.fixture(scope="module")
 def apply(params, jitted):
-    """``apply(own, tokens, mask, actions, token_actions)`` -> dict of the jitted actor,
-    value and critic outputs on the module's parameters, as NumPy arrays."""
+    """``apply(own, tokens, mask)`` -> dict of the jitted actor and value outputs on the
+    module's parameters, as NumPy arrays."""
 
-    def run(own, tokens, mask, actions, tok_actions):
+    def run(own, tokens, mask):
         return dict(
             actor=np.asarray(jitted["actor"](params["actor"], own, tokens, mask)),
             value=np.asarray(jitted["value"](params["value"], own, tokens, mask)),
-            critic=np.asarray(jitted["critic"](params["critic"], own, actions, tokens, tok_actions, mask)),
         )
 
     return run
@@ -167,18 +164,14 @@ def worlds():
 
 @pytest.fixture(scope="module")
 def batch(worlds):
-    """The worlds' views [B = 2, N, ...], their joint actions [B, N, 2] and the critic's token
-    actions [B, N, M, 2]."""
-    rng = np.random.default_rng(4)
-    own, tokens, mask = stack_views(worlds, rng)
-    actions = rng.uniform(-1, 1, (len(worlds), N, 2)).astype(np.float32)
-    tok_actions = np.asarray(token_actions(actions, P, T))
-    return dict(own=own, tokens=tokens, mask=mask, actions=actions, tok_actions=tok_actions)
+    """The worlds' views [B = 2, N, ...]."""
+    own, tokens, mask = stack_views(worlds, np.random.default_rng(4))
+    return dict(own=own, tokens=tokens, mask=mask)
 
 
 def run_batch(apply, batch, **changes):
     b = {**batch, **changes}
-    return apply(b["own"], b["tokens"], b["mask"], b["actions"], b["tok_actions"])
+    return apply(b["own"], b["tokens"], b["mask"])
 
 
 def assert_outputs_close(got: dict, want: dict, **tol):
@@ -195,24 +188,12 @@ def largest_difference(got: dict, want: dict) -> float:
 # ---------------------------------------------------------------------------------------
 
 
-def test_token_actions_follow_the_token_order():
-    """Row i of the critic's token actions: the other rovers' actions in index order, then zeros."""
-    actions = np.random.default_rng(0).normal(size=(2, N, 2)).astype(np.float32)
-    got = np.asarray(token_actions(actions, P, T))
-    assert got.shape == (2, N, M, 2)
-    for b in range(2):
-        for i in range(N):
-            others = [actions[b, j] for j in range(N) if j != i]
-            np.testing.assert_array_equal(got[b, i], np.concatenate([others, np.zeros((P + T, 2))]))
-
-
 def test_token_permutation_changes_nothing(apply, batch):
-    """Each rover's M tokens permuted at random (tokens, token actions and mask together)."""
+    """Each rover's M tokens permuted at random (tokens and mask together)."""
     rng = np.random.default_rng(5)
     order = np.argsort(rng.random(batch["mask"].shape), axis=-1)  # [B, N, M], one per rover
     moved = {
         "tokens": np.take_along_axis(batch["tokens"], order[..., None], axis=-2),
-        "tok_actions": np.take_along_axis(batch["tok_actions"], order[..., None], axis=-2),
         "mask": np.take_along_axis(batch["mask"], order, axis=-1),
     }
     assert not np.array_equal(moved["tokens"], batch["tokens"])
@@ -224,25 +205,21 @@ def test_masked_garbage_tokens_change_nothing(apply, batch):
     rng = np.random.default_rng(6)
     extra = rng.normal(0, 100, (*batch["mask"].shape[:-1], 7, TOKEN_FEATURES)).astype(np.float32)
     extra[..., 0, 0], extra[..., 1, 3], extra[..., 2, 5] = np.nan, np.inf, -np.inf
-    extra_actions = rng.normal(0, 100, (*extra.shape[:-1], 2)).astype(np.float32)
-    extra_actions[..., 3, 1] = np.nan
     padded = {
         "tokens": np.concatenate([batch["tokens"], extra], axis=-2),
-        "tok_actions": np.concatenate([batch["tok_actions"], extra_actions], axis=-2),
         "mask": np.concatenate([batch["mask"], np.zeros(extra.shape[:-1], bool)], axis=-1),
     }
     assert_outputs_close(run_batch(apply, batch, **padded), run_batch(apply, batch))
 
 
 def test_outputs_permute_with_the_rovers(apply, worlds, batch):
-    """The worlds' rovers renumbered (POIs and traps shuffled too): every real rover's action,
-    value and Q-value (actions renumbered with the rovers) move with it, whatever the order in
-    which it sees the others and whatever garbage fills the padded slots."""
+    """The worlds' rovers renumbered (POIs and traps shuffled too): every real rover's action
+    and value move with it, whatever the order in which it sees the others and whatever
+    garbage fills the padded slots."""
     rng = np.random.default_rng(7)
     orders = [(rng.permutation(N), rng.permutation(P), rng.permutation(T)) for _ in worlds]
     own, tokens, mask = stack_views([permute_world(w, *o) for w, o in zip(worlds, orders)], rng)
-    actions = np.stack([a[o[0]] for a, o in zip(batch["actions"], orders)])
-    got = apply(own, tokens, mask, actions, np.asarray(token_actions(actions, P, T)))
+    got = apply(own, tokens, mask)
     want = run_batch(apply, batch)
     for b, (world, (rovers, _, _)) in enumerate(zip(worlds, orders)):
         real = world["rover_on"][rovers]  # outputs of padded rover rows are not defined
@@ -266,7 +243,6 @@ def test_unmasked_garbage_changes_the_outputs(apply, batch):
     extra = np.random.default_rng(6).normal(0, 1, (*batch["mask"].shape[:-1], 7, TOKEN_FEATURES)).astype(np.float32)
     unmasked = {
         "tokens": np.concatenate([batch["tokens"], extra], axis=-2),
-        "tok_actions": np.concatenate([batch["tok_actions"], extra[..., :2]], axis=-2),
         "mask": np.concatenate([batch["mask"], np.ones(extra.shape[:-1], bool)], axis=-1),
     }
     got, want = run_batch(apply, batch, **unmasked), run_batch(apply, batch)
@@ -303,13 +279,7 @@ def test_same_parameters_for_every_swarm_size(apply, n):
     rng = np.random.default_rng(n)
     world = make_world(rng, 10, 10, 10, (n, n, n))
     own_world = {key: value[:n] for key, value in world.items()}
-    actions = rng.uniform(-1, 1, (1, 10, 2)).astype(np.float32)
-
-    def outputs(w, size):
-        own, tokens, mask = stack_views([w], rng)
-        return apply(own, tokens, mask, actions[:, :size], np.asarray(token_actions(actions[:, :size], size, size)))
-
-    alone, padded = outputs(own_world, n), outputs(world, 10)
+    alone, padded = apply(*stack_views([own_world], rng)), apply(*stack_views([world], rng))
     assert alone["actor"].shape == (1, n, 2) and padded["actor"].shape == (1, 10, 2)
     for name in alone:
         assert np.isfinite(alone[name]).all()
@@ -399,9 +369,9 @@ def np_head(p, x, config: EntityConfig):
 
 
 def np_networks(params, batch, config: EntityConfig, **variant) -> dict:
-    """Encodings [B, N, 2D] (the actor's encoder), actions [B, N, 2], values and Q-values [B, N],
-    one rover's view at a time."""
-    out = {name: [] for name in ("encoder", "actor", "value", "critic")}
+    """Encodings [B, N, 2D] (the actor's encoder), actions [B, N, 2] and values [B, N], one
+    rover's view at a time."""
+    out = {name: [] for name in ("encoder", "actor", "value")}
     for b, i in np.ndindex(*batch["mask"].shape[:2]):
         own, tokens, mask = batch["own"][b, i], batch["tokens"][b, i], batch["mask"][b, i]
         for name in ("actor", "value"):
@@ -410,17 +380,11 @@ def np_networks(params, batch, config: EntityConfig, **variant) -> dict:
             out[name].append(np_head(p["head"], x, config)[: 2 if name == "actor" else 1])
             if name == "actor":
                 out["encoder"].append(x)
-        p = params["critic"]["params"]
-        own_a = np.concatenate([own, batch["actions"][b, i]])
-        tokens_a = np.concatenate([tokens, batch["tok_actions"][b, i]], axis=-1)
-        x = np_encoder(p["encoder"], own_a, tokens_a, mask, config, **variant)
-        out["critic"].append(np_head(p["head"], x, config))
     shape = batch["mask"].shape[:2]
     return dict(
         encoder=np.reshape(out["encoder"], (*shape, -1)),
         actor=np.reshape(out["actor"], (*shape, 2)),
         value=np.reshape(out["value"], shape),
-        critic=np.reshape(out["critic"], shape),
     )
 
 
@@ -431,7 +395,7 @@ def flax_outputs(params, jitted, apply, batch):
 
 
 def test_numpy_reference_agrees(params, batch, flax_outputs):
-    """Encodings, actions, values and Q-values of every rover of both worlds within 1e-4."""
+    """Encodings, actions and values of every rover of both worlds within 1e-4."""
     want = np_networks(params, batch, CONFIG)
     assert_outputs_close(flax_outputs, want, atol=1e-4, rtol=0)
 

@@ -1,4 +1,4 @@
-"""Entity networks: permutation-invariant actors, values and critics over the entity view.
+"""Entity networks: permutation-invariant actors and values over the entity view.
 
 One set of weights drives a swarm of any size: a rover's view is its own features and a
 set of M tokens (the other rovers, POIs and traps), encoded by masked attention, with no
@@ -10,10 +10,10 @@ Shape legend
     M    tokens per rover = (N - 1) + P + T: the other rovers (index order, skipping the
          rover itself), then the POIs, then the traps
     F    token features: TOKEN_FEATURES = 11, ``[dx, dy, dvx, dvy, is_rover, is_poi,
-         is_trap, radius, flag, lead, claim]`` relative to the rover
-         (:mod:`roverswarm.env.entities`); + A for the critic (the token
-         rover's action; zeros for POIs and traps)
-    G    own features: OWN_FEATURES = 4, ``[vx, vy, x, y]``; + A for the critic (own action)
+         is_trap, radius, flag, lead, claim]``: the position relative to the rover, the
+         velocity relative to it for rover tokens (0 for POIs and traps)
+         (:mod:`roverswarm.env.entities`)
+    G    own features: OWN_FEATURES = 4, ``[vx, vy, x, y]``
     A    action size (2)
     D    ``dim``, H ``heads``, d = D / H per head, L ``layers``
 
@@ -54,13 +54,13 @@ Heads (MLP: Dense ReLU layers of sizes ``hidden``, LayerNorm before each ReLU if
 
     actor   pi(own, tokens)          = MLP_2(enc(own, tokens))       [..., 2] pre-activation:
                                        tanh for a deterministic action, or a Gaussian mean
-    value   V(own, tokens)           = MLP_1(enc(own, tokens))       [...]    (MAPPO/IPPO: every
-                                       rover's view holds all entities relative to it)
-    critic  Q(own, a, tokens, a_tok) = MLP_1(enc([own, a], [tokens, a_tok]))   [...]
-                                       (MAAC/PIC: each rover token carries that rover's action)
+    value   V(own, tokens)           = MLP_1(enc(own, tokens))       [...]    (MAPPO/IPPO: the
+                                       rover's own view, every entity or its K nearest of each type)
 
 Use :func:`make_entity_networks` for a :class:`EntityNetworks` record of pure functions
-(init and apply), and :func:`token_actions` for the critic's ``a_tok`` from a joint action.
+(init and apply). The off-policy family does not use these networks: its critic over the
+nearest view is an MLP on the rover's and its nearest others' views and actions
+(:mod:`roverswarm.algos.learner`).
 """
 
 from __future__ import annotations
@@ -75,7 +75,7 @@ import numpy as np
 
 from roverswarm.algos.networks import MLP
 from roverswarm.env.entities import OWN_FEATURES, TOKEN_FEATURES
-from roverswarm.env.mars import ACTION_SIZE, other_rovers
+from roverswarm.env.mars import ACTION_SIZE
 
 NEG = -1e9
 """Attention logit of a padded token: exp(NEG - any real logit) is exactly 0 in float32."""
@@ -174,21 +174,6 @@ class EntityValue(_EntityHeaded):
         return MLP(self.hidden, 1, self.layer_norm, name="head")(x)[..., 0]
 
 
-class EntityCritic(_EntityHeaded):
-    """Q-value [...] of own [..., 4] with the own action [..., 2], and tokens [..., M, F] each
-    with its rover's action ``token_actions`` [..., M, 2] (zeros for POIs and traps; see
-    :func:`token_actions`), mask [..., M]."""
-
-    @nn.compact
-    def __call__(
-        self, own: jax.Array, action: jax.Array, tokens: jax.Array, token_actions: jax.Array, mask: jax.Array
-    ) -> jax.Array:
-        x = self.encoder()(
-            jnp.concatenate([own, action], axis=-1), jnp.concatenate([tokens, token_actions], axis=-1), mask
-        )
-        return MLP(self.hidden, 1, self.layer_norm, name="head")(x)[..., 0]
-
-
 # ---------------------------------------------------------------------------------------
 # Configuration and the record of pure functions the learners call
 # ---------------------------------------------------------------------------------------
@@ -196,7 +181,7 @@ class EntityCritic(_EntityHeaded):
 
 @dataclass(frozen=True)
 class EntityConfig:
-    """Sizes of the entity networks (actor, value and critic alike)."""
+    """Sizes of the entity networks (actor and value alike)."""
 
     dim: int = 64
     """Width D of the own and token embeddings (the encoder's output is 2 * D)."""
@@ -216,11 +201,9 @@ class EntityConfig:
 class EntityNetworks:
     """Entity networks as pure functions (jittable, vmappable; any leading axes)::
 
-        init_actor(key)  / init_value(key) / init_critic(key)   -> params
-        actor(params, own [..., 4], tokens [..., M, F], mask [..., M])      -> [..., 2]
-        value(params, own [..., 4], tokens [..., M, F], mask [..., M])      -> [...]
-        critic(params, own [..., 4], action [..., 2], tokens [..., M, F],
-               token_actions [..., M, 2], mask [..., M])                    -> [...]
+        init_actor(key)  / init_value(key)                              -> params
+        actor(params, own [..., 4], tokens [..., M, F], mask [..., M])  -> [..., 2]
+        value(params, own [..., 4], tokens [..., M, F], mask [..., M])  -> [...]
 
     With a swarm's view (own [..., N, 4], tokens [..., N, M, F], mask [..., N, M]) each
     call returns every rover's output ([..., N, 2] or [..., N]); M, N, P, T may differ
@@ -229,38 +212,24 @@ class EntityNetworks:
     config: EntityConfig
     init_actor: Callable[[jax.Array], Any]
     init_value: Callable[[jax.Array], Any]
-    init_critic: Callable[[jax.Array], Any]
     actor: Callable[..., jax.Array]
     value: Callable[..., jax.Array]
-    critic: Callable[..., jax.Array]
 
 
 def make_entity_networks(config: EntityConfig = EntityConfig()) -> EntityNetworks:
     """The :class:`EntityNetworks` of ``config``. Parameters are initialised on one rover's
     view with a single token: their shapes do not depend on M (nor N, P, T)."""
     sizes = (config.dim, config.heads, config.layers, config.layer_norm, config.hidden)
-    actor, value, critic = EntityActor(*sizes), EntityValue(*sizes), EntityCritic(*sizes)
+    actor, value = EntityActor(*sizes), EntityValue(*sizes)
     # NumPy, not JAX, arrays: the record is cached (ppo_networks.policy_networks), and arrays
     # made while a caller traces (jax.eval_shape of the networks' sizes) would leak as tracers
     own = np.zeros((OWN_FEATURES,), np.float32)
     tokens = np.zeros((1, TOKEN_FEATURES), np.float32)
     mask = np.ones((1,), bool)
-    act, token_act = np.zeros((ACTION_SIZE,), np.float32), np.zeros((1, ACTION_SIZE), np.float32)
     return EntityNetworks(
         config=config,
         init_actor=lambda key: actor.init(key, own, tokens, mask),
         init_value=lambda key: value.init(key, own, tokens, mask),
-        init_critic=lambda key: critic.init(key, own, act, tokens, token_act, mask),
         actor=actor.apply,
         value=value.apply,
-        critic=critic.apply,
     )
-
-
-def token_actions(actions: jax.Array, num_pois: int, num_traps: int) -> jax.Array:
-    """The critic's per-token actions from the joint action ``actions`` [..., N, 2]:
-    [..., N, M, 2] with row i the other rovers' actions in token order (index order, skipping
-    i), then zeros for the P POIs and T traps."""
-    others = jnp.take(actions, jnp.asarray(other_rovers(actions.shape[-2])), axis=-2)  # [..., N, N - 1, 2]
-    pad = [(0, 0)] * (others.ndim - 2) + [(0, num_pois + num_traps), (0, 0)]
-    return jnp.pad(others, pad)

@@ -109,7 +109,8 @@ class AlgoConfig:
     """--network entity: self-attention blocks among the tokens before the pooling (0: embed and pool)."""
     entity_nearest: int = 0
     """--network entity: each rover sees only the nearest this many other rovers, POIs and traps
-    (each type); 0 = every entity (keeps the cost of a step constant in the swarm's size).
+    (each type), which keeps the cost of a step per rover constant in the swarm's size; 0 =
+    every entity (a cost that grows with it).
     --network nearest: how many of each type it sees (>= 1)."""
     poi_order: Literal["nearest", "free", "matched"] = "nearest"
     """With a view of the K nearest of each type (--network nearest, or entity with

@@ -7,9 +7,9 @@ Shape legend: N rovers, O flat observation size, A action size (2), M entity tok
   and the index [N * O + N], IPPO's the actor's input. Tied to the N it was trained on.
 - ``entity`` (``--network entity``): the entity view (:mod:`roverswarm.env.entities`) and
   attention over it (:mod:`roverswarm.algos.entity`): no rover index anywhere, so the same
-  weights drive any number of rovers. Each rover's view already holds every entity relative
-  to it, so MAPPO's and IPPO's values see the same input (the rover's view).
-  ``--entity-nearest K`` cuts the view to the K nearest of each type.
+  weights drive any number of rovers. MAPPO's and IPPO's values see the same input, the
+  rover's view: every entity relative to it, or with ``--entity-nearest K`` the K nearest of
+  each type (then MAPPO's value sees no more than IPPO's; ``--swarm-value`` is refused here).
 - ``nearest`` (``--network nearest``): the K nearest other rovers, POIs and traps
   (``--entity-nearest K``), nearest first within each type, as one vector of fixed width
   (empty slots zero, with the mask), read by the flat view's MLPs. Sorting makes it

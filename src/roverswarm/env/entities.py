@@ -23,7 +23,7 @@ Per rover i (pure JAX, jittable, vmappable; leading batch axes come only from vm
   and the rows of rovers that do not exist are all False.
 
 It holds everything the flat view does (the flat view is its positions, relative to the rover,
-in the same order; nearest first is a sort of each type by distance) and more: the others'
+POIs, then traps, then other rovers; nearest first is a sort of each type by distance) and more: the others'
 velocities, who has failed, which POIs are done and which POIs each rover is nearest to (the
 lead, which a rover could otherwise work out only from every other rover's position, beyond
 what a nearest-K view keeps). Read as a set, it is the same under any permutation of the
