@@ -32,6 +32,7 @@ from roverswarm.episodes import reset_all, size_cap, training_params
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
 from roverswarm.learners.onpolicy import collect, configure, make_batch
+from roverswarm.metrics import chunk_means
 from roverswarm.presets import ANYSIZE
 from roverswarm.runs import Run
 
@@ -97,6 +98,20 @@ def test_mixed_sizes_mask_the_rovers_that_do_not_exist(tiny_anysize):
     for statistic in ("mean", "var"):  # the value targets' running statistics count each sample once
         np.testing.assert_allclose(getattr(made[True][1], statistic), getattr(made[False][1], statistic))
     np.testing.assert_allclose(got.sum(-1), params.num_rovers * np.asarray(traj.mask), rtol=1e-6)
+    # a chunk's agent_i_reward: rover i's mean over the episodes in which it exists, not diluted
+    # by the zeros of the episodes without it (a NumPy loop over the episodes)
+    np.testing.assert_array_equal(np.asarray(episode["rovers"]), exists[0])
+    rewards = np.asarray(episode["agent_rewards"])
+    want = [np.mean([rewards[e, i] for e in range(len(sizes)) if exists[0, e, i]]) for i in range(params.num_rovers)]
+    np.testing.assert_allclose(chunk_means(episode, (0,))["agent_rewards"], want, rtol=1e-5)
+
+
+def test_the_logged_reward_of_a_rover_slot_counts_the_episodes_it_exists_in(anysize_run):
+    """paper-2..4: rover 3 exists in the 4-rover episodes only, where every rover's (negative)
+    reward is larger (more POIs to cover): its logged reward is not a third of rover 0's, as the
+    zeros of the other episodes made it."""
+    for row in Run(anysize_run).metrics():
+        assert row["agent_3_reward"] / row["agent_0_reward"] > 0.8, row
 
 
 def test_stop_when_complete_ends_an_episode_once_every_poi_is_observed(tiny_anysize):

@@ -6,7 +6,8 @@ Shape legend: T steps, E episodes (parallel environments), N rovers; ``...`` any
 Per-episode totals (:func:`episode_totals`):
 
 - ``episode_reward``: sum of every rover's reward over every step (the paper's "episode reward");
-- ``agent_rewards`` [N]: the same per rover (``agent_i_reward`` in ``metrics.csv``);
+- ``agent_rewards`` [N]: the same per rover (``agent_i_reward`` in ``metrics.csv``, a mean
+  over the episodes in which rover i exists: :func:`chunk_means`);
 - ``collisions``: rover-rover contacts, one per touching pair per step;
 - ``trap_contacts``: rover-trap contacts, one per (rover, trap) pair per step;
 - ``coverage_distance``: sum over POIs of the nearest rover's distance at the last step.
@@ -95,7 +96,17 @@ def episode_totals(steps: dict, axis: int = 0) -> dict:
     }
 
 
-def masked_mean(x: jax.Array, mask: jax.Array, axis: int | None = None) -> jax.Array:
+def chunk_means(episode: dict, axis: tuple[int, ...]) -> dict:
+    """A chunk's per-episode totals (:func:`episode_totals` with ``rovers`` [..., N], the
+    rovers that exist) as means over ``axis``: ``agent_rewards`` over the episodes in which
+    each rover exists (where swarm sizes mix, the last slots exist in only some; 0 for a slot
+    that never did), the rest over every episode."""
+    means = {k: v.mean(axis=axis) for k, v in episode.items() if k != "rovers"}
+    means["agent_rewards"] = masked_mean(episode["agent_rewards"], episode["rovers"], axis)
+    return means
+
+
+def masked_mean(x: jax.Array, mask: jax.Array, axis: int | tuple[int, ...] | None = None) -> jax.Array:
     """The mean of ``x`` over the entries where ``mask`` (0/1 or bool) is set, along ``axis``
     (all axes by default); 0 where none is."""
     return jnp.sum(x * mask, axis) / jnp.maximum(jnp.sum(mask, axis), 1.0)

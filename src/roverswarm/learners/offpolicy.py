@@ -49,7 +49,7 @@ from roverswarm.env.mars import ACTION_SIZE, EnvParams, masks_of, observe, step_
 from roverswarm.episodes import executed, exists, reset_all, sizes_of, training_params, training_rewards
 from roverswarm.learners.base import Family, Runner, seed_keys, start_runner
 from roverswarm.learners.offpolicy_config import RUN_OPTIONS, OffPolicyConfig, check, configure, run_replay
-from roverswarm.metrics import episode_totals, masked_mean, reduce_metric, step_stats
+from roverswarm.metrics import chunk_means, episode_totals, masked_mean, reduce_metric, step_stats
 
 LEARNER_METRICS = ("critic_loss", "actor_loss", "q_mean", "sampled_loss", "sampled_loss_max", "sampled_newest")
 """Per-update metrics in ``metrics.csv`` (mean over agents; ``*_max``: max over agents and updates)."""
@@ -168,7 +168,7 @@ def collect(
 
     Returns the episodes for the replay (:class:`~roverswarm.buffers.compact.Collected`), the
     observations [T, E, N, O] the actors saw and the episode totals [E]
-    (:func:`~roverswarm.metrics.episode_totals`).
+    (:func:`~roverswarm.metrics.episode_totals`, with ``rovers`` [E, N], those that exist).
     """
     k_reset, k_steps = jax.random.split(key)
     params = training_params(config, params)
@@ -206,7 +206,7 @@ def collect(
     if _keeps_failures(config):
         kept["fail_step"] = state.fail_step
     collected = compact.Collected(*steps, compact.layout_of(state), compact.rovers_of(last), policy, **kept)
-    return collected, observations, episode_totals(stats)
+    return collected, observations, {**episode_totals(stats), "rovers": rovers}
 
 
 def learn(
@@ -323,7 +323,7 @@ def run_chunk(config: OffPolicyConfig, params: EnvParams, runner: Runner, total:
         partial(iteration, config, params, buffer, total), runner, None, length=iterations
     )
     # episode: [I, S, E, ...] -> mean over iterations and environments, per seed
-    metrics = {k: v.mean(axis=(0, 2)) for k, v in episode.items()}
+    metrics = chunk_means(episode, (0, 2))
     count = jnp.maximum(updated.sum(), 1.0)
     for k, v in info.items():  # [I, S, N], over the iterations that updated (the others hold zeros)
         metrics[k] = v.max(axis=0) if k.endswith("_max") else (v * updated[:, None, None]).sum(axis=0) / count

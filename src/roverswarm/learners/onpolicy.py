@@ -41,7 +41,7 @@ from roverswarm.env.mars import EnvParams, failed_rovers, observation_size, step
 from roverswarm.episodes import executed, exists, reset_all, training_params, training_rewards
 from roverswarm.errors import require, require_finite, require_positive
 from roverswarm.learners.base import Family, Runner, no_replay, seed_keys, start_runner
-from roverswarm.metrics import episode_totals, settled_coverage, step_stats
+from roverswarm.metrics import chunk_means, episode_totals, settled_coverage, step_stats
 from roverswarm.oracle import greedy_plan, oracle_actions
 
 LOG_STD_RANGE = (-10.0, 2.0)
@@ -157,8 +157,8 @@ def collect(
     After a termination (mission mode) an episode stands still and its steps are masked out.
     With --teacher, the trajectory also holds the oracle's action in every state.
     Returns the trajectory [T, E, ...] and per-episode stats [E], as the MADDPG trainer's:
-    ``episode_reward``, ``agent_rewards`` [E, N], ``collisions``, ``trap_contacts`` and
-    ``coverage_distance`` (at the last step).
+    ``episode_reward``, ``agent_rewards`` [E, N], ``collisions``, ``trap_contacts``,
+    ``coverage_distance`` (at the last step) and ``rovers`` [E, N] (those that exist).
     """
     nets = policy_networks(config.learner, config.ppo)
     observe_all = jax.vmap(nets.observe, in_axes=(0, None))
@@ -197,7 +197,7 @@ def collect(
 
     done = jnp.zeros((config.num_envs,), bool)
     _, (traj, stats) = jax.lax.scan(body, (obs, env_state, done), jax.random.split(k_steps, params.max_steps))
-    return traj, episode_totals(stats)
+    return traj, {**episode_totals(stats), "rovers": rovers}
 
 
 def values_of(config: OnPolicyConfig, critic, returns: ObsNorm, obs) -> tuple[jax.Array, jax.Array]:
@@ -290,7 +290,7 @@ def run_chunk(config: OnPolicyConfig, params: EnvParams, runner: Runner, total: 
         keys = jax.random.split(key, iterations + 1)
         episodes = runner.episodes + config.num_envs * jnp.arange(iterations)
         state, (episode, info) = jax.lax.scan(partial(iteration, config, params), state, (keys[1:], episodes))
-        metrics = {k: v.mean(axis=(0, 1)) for k, v in episode.items()}  # [I, E, ...]
+        metrics = chunk_means(episode, (0, 1))  # [I, E, ...]
         metrics.update({k: v.mean(axis=0) for k, v in info.items()})  # [I]
         return state, metrics, keys[0]
 
