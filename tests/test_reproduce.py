@@ -203,6 +203,8 @@ def test_two_optimizer_variants_against_one_maddpg_arm(base, finished, tmp_path,
         ]
         again = paper_module.time_arms(grid, changed)
         paper_module.time_arms(grid, changed)  # the new settings kept: timed once
+        resumed = [dataclasses.replace(r, config=with_options(r.config, {"checkpoint_every": 7})) for r in changed]
+        paper_module.time_arms(grid, resumed)  # what a resume may change and no timing reads
         assert timings == [["paper-3"] * 3]
     assert again[("paper-3", "maddpg")].tolist() == [1000 / base.log_every] * 2
     np.testing.assert_array_equal(again[("paper-2", "maddpg")], timed[("paper-2", "maddpg")])

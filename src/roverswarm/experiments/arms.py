@@ -21,10 +21,12 @@ from roverswarm.presets import PRESETS
 from roverswarm.runs import (
     CHECKPOINT,
     CONFIG,
+    METRICS,
     Run,
     budget_spent,
     check_rollout_memory,
     checkpointed_rows,
+    read_metrics,
     training_seconds,
 )
 
@@ -329,7 +331,15 @@ def status(run: GridRun) -> Literal["done", "partial", "new"]:
 
 
 def episodes_done(run: GridRun) -> int:
+    """Episodes per seed ``run``'s checkpoint holds (what a resume starts from)."""
     return int(max((r["episodes"] for r in run_rows(run)), default=0))
+
+
+def episodes_logged(run: GridRun) -> int:
+    """Episodes per seed of ``run``'s last metrics row, checkpointed or not: a running job's
+    progress, chunk by chunk."""
+    rows = read_metrics(run.folder / METRICS) if (run.folder / METRICS).exists() else []
+    return int(max((r["episodes"] for r in rows), default=0))
 
 
 # ----------------------------------------------------------------------------- jobs

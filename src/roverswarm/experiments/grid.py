@@ -39,11 +39,14 @@ def run_grid(config: ReproduceConfig, base: TrainConfig | None = None, live: boo
     check_evaluations(runs, config.grid_eval_episodes)
     if config.force:  # once every run is checked: the runs, and the times taken with their settings
         with ExitStack() as locks:  # none deleted while a command writes one (train --resume RUN)
-            existing = [run.folder for run in runs if run.folder.exists()]
-            for folder in existing:
-                locks.enter_context(folder_lock(folder))
-            for folder in existing:
+            held = []
+            for folder in [run.folder for run in runs if run.folder.exists()]:
+                lock = locks.enter_context(ExitStack())
+                lock.enter_context(folder_lock(folder))
+                held.append((folder, lock))
+            for folder, lock in held:
                 shutil.rmtree(folder)
+                lock.close()  # at once: a writer that makes the folder anew then holds a lock of its own
         (config.out / TIMING).unlink(missing_ok=True)
     done = {run.name for run in runs if status(run) == "done"}
     todo = [run for run in runs if run.name not in done]

@@ -6,6 +6,7 @@ report written (:mod:`~roverswarm.experiments.results`, :mod:`~roverswarm.experi
 from __future__ import annotations
 
 import csv
+import dataclasses
 import hashlib
 import time
 from pathlib import Path
@@ -26,11 +27,16 @@ from roverswarm.learners import learner_family
 from roverswarm.runs import folder_lock, write_csv
 from roverswarm.storage import save_figure, write_text
 
+UNTIMED = ("budget_minutes", "checkpoint_every", "checkpoint_minutes")
+"""Settings a resume may change that no timed chunk reads (timing trains without checkpoints)."""
+
 
 def settings_of(config: TrainConfig) -> str:
-    """A fingerprint of a run's training settings (its replay's size, its learner, ...): an
-    arm's times in ``timing.csv`` count only while its settings are those it was timed with."""
-    return hashlib.sha256(config_to_json(config).encode()).hexdigest()[:16]
+    """A fingerprint of a run's training settings (its replay's size, its learner, ...) but
+    :data:`UNTIMED`: an arm's times in ``timing.csv`` count only while its settings are those
+    it was timed with."""
+    timed = dataclasses.replace(config, **{name: getattr(TrainConfig(), name) for name in UNTIMED})
+    return hashlib.sha256(config_to_json(timed).encode()).hexdigest()[:16]
 
 
 def time_arms(config: ReproduceConfig, runs: list[GridRun]) -> dict[tuple[str, str], np.ndarray]:

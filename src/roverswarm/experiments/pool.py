@@ -11,7 +11,7 @@ from pathlib import Path
 
 from roverswarm.config import config_from_json, config_to_json
 from roverswarm.errors import RunStopped, UserError
-from roverswarm.experiments.arms import SHORT_RUN, GridRun, episodes_done, status, usable_cpus
+from roverswarm.experiments.arms import SHORT_RUN, GridRun, episodes_done, episodes_logged, status, usable_cpus
 from roverswarm.experiments.live import Summary
 from roverswarm.experiments.stopping import JobsStop, start_job
 from roverswarm.jaxcache import release_compiled_programs
@@ -96,7 +96,7 @@ def run_jobs(runs: list[GridRun], summary: Summary, jobs: int) -> None:
                     if process.exitcode == 0:
                         summary.finish(run)
                 for run, _ in running.values():
-                    summary.progress(run, episodes_done(run))
+                    summary.progress(run, episodes_logged(run))
         finally:  # stop the others at their next chunk, with a checkpoint
             stop.wait(list(running))
     if stop.asked:

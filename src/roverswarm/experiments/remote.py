@@ -163,7 +163,7 @@ def run_ray(
                                     summary.finish(run)
                                     if on_finish is not None:
                                         on_finish(run)
-                            except (UserError, RunStopped, OSError) as error:
+                            except Exception as error:  # raised once the others are back
                                 failure = failure or error
                                 continue
                             if stopped is not None and not stop.asked:
