@@ -568,8 +568,9 @@ def test_the_relative_change_interval_covers_the_truth_95_percent_of_the_time():
 
 
 def test_the_live_table_starts_a_partial_run_where_it_was_saved(base, tmp_path):
-    """A run interrupted at 200 of 400 episodes waits as "queued 200/400", and the time left
-    counts only its 200 left: one run trains 100 episodes in a minute, 300 + 200 are left."""
+    """A run interrupted at 200 of 400 episodes (its checkpoint's; metrics.csv a chunk ahead)
+    waits as "queued 200/400", and the time left counts only its 200 left: one run trains 100
+    episodes in a minute, 300 + 200 are left."""
     from rich.console import Console
 
     from roverswarm.experiments.live import Summary
@@ -578,8 +579,9 @@ def test_the_live_table_starts_a_partial_run_where_it_was_saved(base, tmp_path):
     partial.folder.mkdir(parents=True)
     write_csv(
         partial.folder / "metrics.csv",
-        [{"seed": s, "episodes": e, "wall_seconds": 1.0} for e in (100, 200) for s in range(2)],
+        [{"seed": s, "episodes": e, "wall_seconds": 1.0} for e in (100, 200, 300) for s in range(2)],
     )
+    np.savez(partial.folder / "checkpoint.npz", episodes=np.asarray(200))  # what a resume starts from
     summary = Summary([fresh, partial], set())
     summary.progress(fresh, 0)
     summary.progress(fresh, 100)
