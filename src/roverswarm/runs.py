@@ -158,8 +158,12 @@ def checkpointed_rows(folder: Path) -> tuple[int, list[dict[str, float]]]:
     """The episodes per seed ``folder``'s checkpoint has trained and the ``metrics.csv`` rows up
     to them (the file is written just before a checkpoint, so it may run one chunk ahead)."""
     done = trained_episodes(folder / CHECKPOINT)
-    rows = read_metrics(folder / METRICS) if done and (folder / METRICS).exists() else []
-    return done, [r for r in rows if r["episodes"] <= done]
+    return done, [r for r in logged_rows(folder) if r["episodes"] <= done] if done else []
+
+
+def logged_rows(folder: Path) -> list[dict[str, float]]:
+    """The rows of ``folder``'s ``metrics.csv`` (none if it was never written)."""
+    return read_metrics(folder / METRICS) if (folder / METRICS).exists() else []
 
 
 def budget_spent(config: TrainConfig, seconds: float) -> bool:
@@ -286,7 +290,7 @@ class Run:
 
     def metrics(self) -> list[dict[str, float]]:
         """The rows of ``metrics.csv`` (none if it was never written)."""
-        return read_metrics(self.folder / METRICS) if (self.folder / METRICS).exists() else []
+        return logged_rows(self.folder)
 
     @functools.cached_property
     def learner(self) -> Any:

@@ -21,12 +21,11 @@ from roverswarm.presets import PRESETS
 from roverswarm.runs import (
     CHECKPOINT,
     CONFIG,
-    METRICS,
     Run,
     budget_spent,
     check_rollout_memory,
     checkpointed_rows,
-    read_metrics,
+    logged_rows,
     training_seconds,
 )
 
@@ -315,8 +314,10 @@ def status(run: GridRun) -> Literal["done", "partial", "new"]:
         reason = f"{saved.episodes} episodes, more than {run.config.episodes}" if longer else ""
     except UserError as e:
         reason = str(e).removeprefix("--resume: ")
-    if not reason and (run.folder / CHECKPOINT).exists() and episodes_done(run) > run.config.episodes:
-        reason = f"{episodes_done(run)} episodes trained, more than {run.config.episodes}: an extension stopped"
+    rows = [] if reason else run_rows(run)  # none without a checkpoint
+    trained = int(max((r["episodes"] for r in rows), default=0))
+    if trained > run.config.episodes:
+        reason = f"{trained} episodes trained, more than {run.config.episodes}: an extension stopped"
         reason += " before it saved its settings"
     if reason:
         raise UserError(
@@ -325,7 +326,6 @@ def status(run: GridRun) -> Literal["done", "partial", "new"]:
         )
     if not (run.folder / CHECKPOINT).exists():
         return "new"
-    rows = run_rows(run)
     finished = sum(1 for r in rows if r["episodes"] == run.config.episodes) == run.config.seeds
     return "done" if finished or budget_spent(run.config, training_seconds(rows)) else "partial"
 
@@ -338,8 +338,7 @@ def episodes_done(run: GridRun) -> int:
 def episodes_logged(run: GridRun) -> int:
     """Episodes per seed of ``run``'s last metrics row, checkpointed or not: a running job's
     progress, chunk by chunk."""
-    rows = read_metrics(run.folder / METRICS) if (run.folder / METRICS).exists() else []
-    return int(max((r["episodes"] for r in rows), default=0))
+    return int(max((r["episodes"] for r in logged_rows(run.folder)), default=0))
 
 
 # ----------------------------------------------------------------------------- jobs
