@@ -8,7 +8,8 @@ import dataclasses
 import jax
 import pytest
 
-from roverswarm.learners import offpolicy, onpolicy
+from roverswarm.config import validate
+from roverswarm.learners import learner_family, offpolicy, onpolicy
 from roverswarm.trainer import train
 
 COMPILE_EVENTS = ("/jax/core/compile/jaxpr_to_mlir_module_duration", "/jax/core/compile/backend_compile_duration")
@@ -48,3 +49,21 @@ def test_another_seed_and_episode_count_compile_no_new_program(family, tiny_conf
     with Compilations() as third:  # what does shape the program still compiles one
         train(dataclasses.replace(config, seeds=2), progress=False)
     assert chunk._cache_size() == programs + 1 and third.events
+
+
+@pytest.mark.parametrize("family", ["off-policy", "on-policy"])
+def test_a_fresh_runs_networks_and_replays_are_one_program(family, tiny_config, tiny_ppo_config):
+    # built operation by operation, the networks' initialisers and the empty replays compiled a
+    # program per operation and shape: dozens for a new shape (here 3 seeds)
+    off = family == "off-policy"
+    config = tiny_config if off else tiny_ppo_config
+    config = dataclasses.replace(config, seeds=3)
+    params = validate(config)
+    learners = learner_family(config.learner.algo)
+    program = learners.configure(config, params)
+    with Compilations() as built:
+        runner = learners.init(program, params, 5)
+    # the one program, and the seeds' keys (a split and a fold-in vmapped over the 3 seeds)
+    assert 1 <= len(built.events) // 2 <= 4, len(built.events)
+    assert all(leaf.shape[0] == 3 for leaf in jax.tree.leaves(runner.learner))
+    assert (runner.buffer is not None) == off

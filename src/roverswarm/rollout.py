@@ -83,6 +83,7 @@ def _rollout_batch(
 
 
 _reset_batch = jax.jit(jax.vmap(reset, in_axes=(0, None)))
+_coverage_batch = jax.jit(jax.vmap(coverage_distance))
 
 
 def rollout(policy: Policy, key: jax.Array, params: EnvParams, num_episodes: int, fail_step=None) -> Rollout:
@@ -112,9 +113,7 @@ def rollout(policy: Policy, key: jax.Array, params: EnvParams, num_episodes: int
         collisions=totals["collisions"],
         trap_contacts=totals["trap_contacts"],
         # from the final positions: after a termination the last step's info is of a discarded step
-        coverage_distance=np.asarray(
-            jax.vmap(coverage_distance)(out["rover_pos"][:, -1], states.poi_pos, masks_of(states))
-        ),
+        coverage_distance=np.asarray(_coverage_batch(out["rover_pos"][:, -1], states.poi_pos, masks_of(states))),
         pois_observed=observed[:, -1].sum(axis=-1),
     )
     return Rollout(

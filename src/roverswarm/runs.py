@@ -267,6 +267,11 @@ def partner_seeds(seed: int, num_agents: int, seeds: int) -> np.ndarray:
     return (seed + np.arange(num_agents)) % seeds
 
 
+_seed_of = jax.jit(lambda tree, index: jax.tree.map(lambda x: x[index], tree))
+"""Seed ``index`` of every leaf [S, ...] of ``tree``: one compiled program, where indexing leaf by
+leaf compiled one per leaf shape."""
+
+
 class Run:
     """A finished or interrupted run in ``folder``: its config, metrics, networks and policies.
 
@@ -319,7 +324,7 @@ class Run:
     def _policy(self, index: int, name: str, sub_policy: int | None = None, seed: int = 0) -> Policy:
         """Seed ``index``'s policy (its networks and observation normaliser); with ensembles,
         sub-policy ``sub_policy`` for every agent, or random ones drawn with ``seed``."""
-        actor, norm = jax.tree.map(lambda x: x[index], learner_family(self.config.learner.algo).weights(self.learner))
+        actor, norm = _seed_of(learner_family(self.config.learner.algo).weights(self.learner), index)
         return trained_policy(self.config, actor, name, sub_policy, seed, obs_norm=norm)
 
     def policies(

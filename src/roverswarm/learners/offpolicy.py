@@ -111,17 +111,24 @@ def _sizes(learner: AlgoConfig, params: EnvParams) -> tuple[int, int]:
     return params.num_rovers, observation_width(learner, params)
 
 
+def _init_seed(config: OffPolicyConfig, params: EnvParams, key: jax.Array) -> LearnerState:
+    """One seed's fresh networks."""
+    return init_learner(key, config.learner, *_sizes(config.learner, params))
+
+
+def _replays(config: OffPolicyConfig, params: EnvParams) -> BufferState:
+    """Every seed's empty replay [S, ...]."""
+    return jax.vmap(lambda _: _replay(config, params))(jnp.arange(config.seeds))
+
+
 def init(config: OffPolicyConfig, params: EnvParams, seed: int) -> Runner:
     """Fresh networks and empty replays for every seed of base seed ``seed``."""
-    buffers = jax.vmap(lambda _: _replay(config, params))(jnp.arange(config.seeds))
-    sizes = _sizes(config.learner, params)
-    return start_runner(seed, config.seeds, lambda key: init_learner(key, config.learner, *sizes), buffers)
+    return start_runner(seed, config, params, _init_seed, _replays)
 
 
 def learners(config: OffPolicyConfig, params: EnvParams) -> LearnerState:
     """Every seed's fresh networks [S, ...] (a checkpoint's template)."""
-    sizes = _sizes(config.learner, params)
-    return jax.vmap(lambda key: init_learner(key, config.learner, *sizes))(seed_keys(0, config.seeds)[:, 0])
+    return jax.vmap(partial(_init_seed, config, params))(seed_keys(0, config.seeds)[:, 0])
 
 
 def replay_bytes(config, params: EnvParams) -> tuple[int, int, int]:

@@ -130,17 +130,21 @@ def configure(config, params: EnvParams) -> OnPolicyConfig:
     return OnPolicyConfig(**{f.name: getattr(config, f.name) for f in dataclasses.fields(OnPolicyConfig)})
 
 
+def _init_seed(config: OnPolicyConfig, params: EnvParams, key: jax.Array) -> PPOState:
+    """One seed's fresh networks (the flat view's shaped by N and the observation's width; an
+    entity network's by neither)."""
+    return init_ppo(key, config, params.num_rovers, observation_size(params))
+
+
 def init(config: OnPolicyConfig, params: EnvParams, seed: int) -> Runner:
     """Fresh networks for every seed of base seed ``seed`` (keys derived from (seed, s) as
     off-policy); no replay."""
-    sizes = (params.num_rovers, observation_size(params))
-    return start_runner(seed, config.seeds, lambda key: init_ppo(key, config, *sizes))
+    return start_runner(seed, config, params, _init_seed)
 
 
 def learners(config: OnPolicyConfig, params: EnvParams) -> PPOState:
     """Every seed's fresh networks [S, ...] (a checkpoint's template)."""
-    sizes = (params.num_rovers, observation_size(params))
-    return jax.vmap(lambda key: init_ppo(key, config, *sizes))(seed_keys(0, config.seeds)[:, 0])
+    return jax.vmap(partial(_init_seed, config, params))(seed_keys(0, config.seeds)[:, 0])
 
 
 def _where_env(done: jax.Array, old, new):
