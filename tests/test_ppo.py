@@ -202,6 +202,18 @@ def test_inputs_and_deterministic_actions(tiny_ppo_config):
     np.testing.assert_array_equal(actions, np.clip(mean, -1, 1))
 
 
+def test_orthogonal_init_under_vmap_draws_flaxs_matrices_one_qr_at_a_time():
+    """Batched over keys, the initialiser gives flax's matrices key by key, and every QR
+    factorisation in the compiled program is of one matrix: a batched one waits for its tasks
+    on XLA's thread pool, and two at once hung the initialisation on 2 cores."""
+    keys = jax.random.split(jax.random.PRNGKey(3), 4)
+    draw = jax.vmap(lambda key: ppo_networks.orthogonal(2.0)(key, (6, 5)))
+    flax_matrices = [np.asarray(jax.nn.initializers.orthogonal(2.0)(key, (6, 5))) for key in keys]
+    np.testing.assert_array_equal(np.asarray(draw(keys)), np.stack(flax_matrices))
+    qr_calls = [line for line in jax.jit(draw).lower(keys).as_text().splitlines() if "geqrf" in line]
+    assert qr_calls and all('num_batch_dims = "0"' in line for line in qr_calls), qr_calls
+
+
 def test_rollout_flags_under_jit_vmap(tiny_ppo_config):
     # (collect vmaps the environments; jit it as the trainer does)
     # time limit: truncated at the last step only, every step live

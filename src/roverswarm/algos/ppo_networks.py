@@ -63,6 +63,23 @@ class PolicyNetworks:
 _ACTIVATIONS = {"tanh": nn.tanh, "relu": nn.relu}
 
 
+def orthogonal(scale: float) -> Callable[..., jax.Array]:
+    """flax's orthogonal initialiser (the same numbers), one matrix at a time under ``vmap``.
+
+    Batched by ``vmap`` (over seeds, agents, ensembles), its QR factorisation is one LAPACK
+    call on a stack of matrices, which jaxlib (0.10) splits into tasks on XLA's intra-op
+    thread pool and waits for *on* a thread of that pool: two such calls running at once on
+    a 2-core machine took both threads and waited forever (the initialisation hung in 5 of 8
+    runs: docs/performance.md#a-hang-in-the-initialisation). Drawn sequentially, each call
+    factorises one matrix in its own thread."""
+    init = nn.initializers.orthogonal(scale)
+
+    def draw(key: jax.Array, shape: Sequence[int], dtype: Any = jnp.float32) -> jax.Array:
+        return jax.custom_batching.sequential_vmap(lambda k: init(k, shape, dtype))(key)
+
+    return draw
+
+
 class MLP(nn.Module):
     """Dense layers of sizes ``hidden`` with ``activation``, then a linear output of size
     ``out``; orthogonal initialisation (gain sqrt(2) hidden, ``out_gain`` output), zero biases."""
@@ -75,9 +92,9 @@ class MLP(nn.Module):
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         for width in self.hidden:
-            x = nn.Dense(width, kernel_init=nn.initializers.orthogonal(math.sqrt(2)))(x)
+            x = nn.Dense(width, kernel_init=orthogonal(math.sqrt(2)))(x)
             x = _ACTIVATIONS[self.activation](x)
-        return nn.Dense(self.out, kernel_init=nn.initializers.orthogonal(self.out_gain))(x)
+        return nn.Dense(self.out, kernel_init=orthogonal(self.out_gain))(x)
 
 
 class GaussianActor(nn.Module):

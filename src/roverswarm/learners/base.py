@@ -42,13 +42,8 @@ class Runner:
     updates: jax.Array  # [] int32, updates of every network per seed so far (shared)
 
 
-def seed_keys(seed: int, seeds: int) -> jax.Array:
-    """[S, 2, 2] per seed s of base seed ``seed``: (init key, run key), from (seed, s)."""
-    return _derived_keys(jax.random.PRNGKey(seed), seeds)
-
-
 def _derived_keys(base: jax.Array, seeds: int) -> jax.Array:
-    """:func:`seed_keys` from the base seed's key (traceable: the seed is data)."""
+    """[S, 2, 2] per seed s of the base seed's key ``base``: (init key, run key), from (seed, s)."""
     keys = jax.vmap(lambda s: jax.random.fold_in(base, s))(jnp.arange(seeds))
     return jax.vmap(jax.random.split)(keys)
 
@@ -61,7 +56,7 @@ def start_runner(
     replays: Callable[[Program, EnvParams], Any] | None = None,
 ) -> Runner:
     """Every seed's fresh state: ``init_seed(program, params, key)`` builds one seed's learner,
-    from keys derived from (``seed``, s) for seed s of ``program.seeds`` (:func:`seed_keys`);
+    from keys derived from (``seed``, s) for seed s of ``program.seeds`` (:func:`_derived_keys`);
     ``replays(program, params)`` the seeds' empty replays (None on-policy). Both functions are
     module-level (they key the compiled program with ``program``).
 

@@ -47,7 +47,7 @@ from roverswarm.buffers.base import (
 from roverswarm.env.entities import EntityView, flat_tokens, observe_nearest
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, masks_of, observe, step_env
 from roverswarm.episodes import executed, exists, reset_all, sizes_of, training_params, training_rewards
-from roverswarm.learners.base import Family, Runner, seed_keys, start_runner
+from roverswarm.learners.base import Family, Runner, start_runner
 from roverswarm.learners.offpolicy_config import RUN_OPTIONS, OffPolicyConfig, check, configure, run_replay
 from roverswarm.metrics import chunk_means, episode_totals, masked_mean, reduce_metric, step_stats
 
@@ -128,7 +128,7 @@ def init(config: OffPolicyConfig, params: EnvParams, seed: int) -> Runner:
 
 def learners(config: OffPolicyConfig, params: EnvParams) -> LearnerState:
     """Every seed's fresh networks [S, ...] (a checkpoint's template)."""
-    return jax.vmap(partial(_init_seed, config, params))(seed_keys(0, config.seeds)[:, 0])
+    return start_runner(0, config, params, _init_seed).learner  # base seed 0's, without replays
 
 
 def replay_bytes(config, params: EnvParams) -> tuple[int, int, int]:

@@ -40,7 +40,7 @@ from roverswarm.algos.ppo_networks import policy_networks
 from roverswarm.env.mars import EnvParams, failed_rovers, observation_size, step_env
 from roverswarm.episodes import executed, exists, reset_all, training_params, training_rewards
 from roverswarm.errors import require, require_finite, require_positive
-from roverswarm.learners.base import Family, Runner, no_replay, seed_keys, start_runner
+from roverswarm.learners.base import Family, Runner, no_replay, start_runner
 from roverswarm.metrics import chunk_means, episode_totals, settled_coverage, step_stats
 from roverswarm.oracle import greedy_plan, oracle_actions
 
@@ -144,7 +144,7 @@ def init(config: OnPolicyConfig, params: EnvParams, seed: int) -> Runner:
 
 def learners(config: OnPolicyConfig, params: EnvParams) -> PPOState:
     """Every seed's fresh networks [S, ...] (a checkpoint's template)."""
-    return jax.vmap(partial(_init_seed, config, params))(seed_keys(0, config.seeds)[:, 0])
+    return start_runner(0, config, params, _init_seed).learner  # base seed 0's, without replays
 
 
 def _where_env(done: jax.Array, old, new):
