@@ -108,7 +108,10 @@ def numpy_loss(config, log_probs, entropy, values, b):
 def test_ppo_loss_matches_numpy(value_clip):
     rng = np.random.default_rng(1)
     size = 64
-    f32 = lambda x: np.asarray(x, np.float32)
+
+    def f32(x):
+        return np.asarray(x, np.float32)
+
     b = {
         "log_probs": f32(rng.normal(size=size)),
         "advantages": f32(rng.normal(1.0, 2.0, size=size)),

@@ -436,6 +436,23 @@ def test_the_grid_sets_preset_ensembles_inferred_policies_and_the_optimizer(tmp_
     assert "--variants needs maddpg-optimizer or ddpg-optimizer in --algorithms" in capsys.readouterr().err
 
 
+def test_the_quick_grid_trains_the_smallest_and_largest_swarm_and_the_full_grid_all_four(tmp_path):
+    """--quick plans paper-2 and paper-5 (each run compiles its own programs: a short grid's
+    time), short and with 2 seeds; without it the paper's four swarms at its budget; given
+    --scenarios win either way."""
+
+    def grid(*argv: str) -> set[tuple[str, str, int, int]]:
+        config = ReproduceConfig(out=tmp_path, quick="--quick" in argv, scenarios=argv[2:] or None)
+        return {(r.scenario, r.algorithm, r.config.seeds, r.config.episodes) for r in plan(config)}
+
+    arms = ("ddpg", "maddpg", "maddpg-optimizer")
+    assert grid("--quick") == {(s, a, 2, 2000) for s in ("paper-2", "paper-5") for a in arms}
+    assert grid() == {(f"paper-{n}", a, 5, 60_000) for n in (2, 3, 4, 5) for a in arms}
+    assert grid("--quick", "--scenarios", "paper-3", "paper-4") == {
+        (s, a, 2, 2000) for s in ("paper-3", "paper-4") for a in arms
+    }
+
+
 def test_ddpg_with_the_optimizer_is_compared_with_ddpg(base, finished, tmp_path):
     """A `ddpg-optimizer` arm beside the paper's three learners of ``finished`` (copied): each
     optimizer arm's Table I row is the paired change against its own plain learner, recomputed

@@ -43,6 +43,14 @@ on-policy learners beside them, each from its own preset (``preset``)."""
 
 Algorithm = Literal["ddpg", "maddpg", "maddpg-optimizer", "ddpg-optimizer", "mappo", "ippo"]
 
+PAPER_SCENARIOS = ("paper-2", "paper-3", "paper-4", "paper-5")
+"""The paper's four swarms (its Table I's rows)."""
+
+QUICK_SCENARIOS = ("paper-2", "paper-5")
+"""The quick grid's (``--quick``): the smallest and the largest of the paper's swarms. Each run
+compiles its own training and evaluation programs, which take most of a short grid's time
+(docs/performance.md#the-readmes-first-command)."""
+
 OPTIMIZERS = {"maddpg-optimizer": "maddpg", "ddpg-optimizer": "ddpg"}
 """The optimizer arms and the plain learner each is compared with on the same seeds (the
 paper's Table I: MADDPG's)."""
@@ -97,10 +105,13 @@ class ReproduceConfig(Backend):
     out: Path = Path("results/paper")
     """Output folder: runs/, table1.md/.csv, fig8.png, fig9.png, report.md."""
     quick: bool = False
-    """A small grid that finishes in minutes on a 2-core CPU: 2 seeds, 2000 episodes per run,
-    metrics every 500 episodes (the learners keep their preset's settings)."""
-    scenarios: tuple[str, ...] = ("paper-2", "paper-3", "paper-4", "paper-5")
-    """Scenario presets, one per swarm size N."""
+    """A small grid that finishes in minutes on a 2-core CPU: the smallest and the largest of
+    the paper's swarms, 2 seeds, 2000 episodes per run, metrics every 500 episodes (the
+    learners keep their preset's settings)."""
+    scenarios: tuple[str, ...] | None = None
+    """Scenario presets, one per swarm size N. Default: the paper's four, paper-2 to paper-5
+    (paper-2 and paper-5 with --quick: compiling each run's programs is most of a short
+    grid's time)."""
     algorithms: tuple[Algorithm, ...] = ("ddpg", "maddpg", "maddpg-optimizer")
     """Learners to compare (Table I needs maddpg and maddpg-optimizer, or ddpg and
     ddpg-optimizer). `ddpg-optimizer` adds DDPG with the optimizer, compared with `ddpg` (not a
@@ -153,6 +164,12 @@ class ReproduceConfig(Backend):
     past 20,000 memory mappings): faster for grids of tiny runs, which would otherwise reload
     many small programs; peak memory grows with the runs (the quick grid 2.1 GB instead of
     0.9 GB)."""
+
+    @property
+    def grid_scenarios(self) -> tuple[str, ...]:
+        if self.scenarios is not None:
+            return self.scenarios
+        return QUICK_SCENARIOS if self.quick else PAPER_SCENARIOS
 
     @property
     def grid_seeds(self) -> int:
@@ -239,10 +256,10 @@ def plan(config: ReproduceConfig, base: TrainConfig | None = None) -> list[GridR
     arm naming a preset (MAPPO, IPPO) starts from that preset instead, with ``base``'s
     logging and checkpoint intervals."""
     base = PRESETS[config.preset] if base is None else base
-    require(len(config.scenarios) > 0, "--scenarios: give at least one scenario")
-    for name in config.scenarios:
+    require(len(config.grid_scenarios) > 0, "--scenarios: give at least one scenario")
+    for name in config.grid_scenarios:
         require(name in SCENARIOS, f"--scenarios: unknown scenario '{name}'; known: {', '.join(SCENARIOS)}")
-    sizes = [SCENARIOS[name].params.num_rovers for name in config.scenarios]
+    sizes = [SCENARIOS[name].params.num_rovers for name in config.grid_scenarios]
     require(len(set(sizes)) == len(sizes), "--scenarios: give each swarm size N once (the report compares by N)")
     require(len(config.algorithms) > 0, f"--algorithms: give at least one of {', '.join(get_args(Algorithm))}")
     require(len(set(config.algorithms)) == len(config.algorithms), "--algorithms: give each algorithm once")
@@ -267,7 +284,7 @@ def plan(config: ReproduceConfig, base: TrainConfig | None = None) -> list[GridR
         )
     paper = {} if config.ensemble is None else {"ensemble": config.ensemble}
     runs = []
-    for scenario in config.scenarios:
+    for scenario in config.grid_scenarios:
         for algorithm, settings in arms.items():
             settings = dict(settings)
             if "preset" not in settings:  # one of the paper's learners

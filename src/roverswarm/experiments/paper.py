@@ -59,7 +59,7 @@ def time_arms(config: ReproduceConfig, runs: list[GridRun]) -> dict[tuple[str, s
                     settings[key] = row["settings"]
         except (ValueError, KeyError, TypeError):  # unreadable, or from before the settings were kept: time again
             timed = {}
-    for scenario in config.scenarios:
+    for scenario in config.grid_scenarios:
         arms = [r for r in runs if r.scenario == scenario and learner_family(r.config.learner.algo).replay]
         kept = (settings.get((scenario, r.algorithm)) == settings_of(r.config) for r in arms)
         if all(kept) and all(len(timed.get((scenario, r.algorithm), [])) >= chunks for r in arms):

@@ -215,7 +215,7 @@ def write_report(
     text = f"""# roverswarm reproduce: the paper's Table I and Figures 8-9
 
 ## Settings
-- Grid: scenarios {", ".join(config.scenarios)} x {arms}; \
+- Grid: scenarios {", ".join(config.grid_scenarios)} x {arms}; \
 {example.seeds} seeds per run (vmapped), {example.episodes} episodes per seed{" (--quick)" if config.quick else ""}; \
 the paper's learners at `--preset {config.preset}`.
 - Optimizer arms (the ranked replay's settings; the rest as their plain learner's):
