@@ -16,6 +16,11 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+CHILD_TIMEOUT = 600
+"""Seconds a test waits for a process of its own (a Ray driver, a grid it stops) before it
+fails: such a child takes under a minute from an empty compilation cache; a wedged one
+should fail the test with its name, not hang the suite."""
+
 TASK = b"ray::train_remote"
 """The process title of a Ray worker running a training task."""
 

@@ -320,6 +320,7 @@ def test_the_docs_snippet_runs_with_numpy_and_onnxruntime_alone(exported, kind, 
         capture_output=True,
         text=True,
         check=False,
+        timeout=300,
     )
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip().splitlines()[-1] == "[]"  # no JAX, no roverswarm in that process

@@ -105,7 +105,9 @@ def test_the_environment_imports_nothing_above_it():
         "import sys, roverswarm.env.pettingzoo; "
         "print(sorted(m for m in sys.modules if m.startswith(('roverswarm', 'optax'))))"
     )
-    loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    loaded = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=300
+    ).stdout
     assert "roverswarm.env.pettingzoo" in loaded
     for above in ("optax", "roverswarm.trainer", "roverswarm.algos", "roverswarm.buffers", "roverswarm.config"):
         assert f"'{above}" not in loaded, loaded

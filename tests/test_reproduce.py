@@ -15,7 +15,7 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 import pytest
-from local_ray import killing_a_worker, local_ray
+from local_ray import CHILD_TIMEOUT, killing_a_worker, local_ray
 from scipy import stats
 
 import roverswarm.experiments.pool as pool_module
@@ -648,7 +648,7 @@ def _reproduce_on_ray(config, base) -> list[int]:
 def test_ray_backend_retries_a_killed_worker_and_matches_the_local_backend(base, finished, tmp_path):
     config = tiny_grid(tmp_path, scenarios=("paper-2",), algorithms=("maddpg",), backend="ray", jobs=None, retries=2)
     with multiprocessing.get_context("spawn").Pool(1) as pool:
-        killed = pool.apply(_reproduce_on_ray, (config, base))
+        killed = pool.apply_async(_reproduce_on_ray, (config, base)).get(timeout=CHILD_TIMEOUT)
     assert killed, "no worker was killed"
     for algorithm in config.algorithms:
         ours, local = (
@@ -669,7 +669,8 @@ def test_jobs_train_runs_side_by_side_to_the_numbers_of_one_process(base, finish
     while not all(m.exists() for m in metrics[:2]) and driver.is_alive():
         time.sleep(0.2)
     os.kill(driver.pid, signal.SIGTERM)
-    driver.join()
+    driver.join(timeout=CHILD_TIMEOUT)
+    assert not driver.is_alive(), f"the grid did not stop within {CHILD_TIMEOUT} s of SIGTERM"
     assert driver.exitcode != 0 and not (tmp_path / "report.md").exists()
     assert all((m.parent / "checkpoint.npz").exists() for m in metrics[:2])
     reproduce(grid, base, live=False)  # resumes the interrupted runs, trains the rest, side by side

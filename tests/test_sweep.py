@@ -418,6 +418,8 @@ def test_a_sweep_on_ray_stops_on_a_signal_resumes_and_retries_a_killed_worker(fi
     import multiprocessing
     import shutil
 
+    from local_ray import CHILD_TIMEOUT
+
     config, _ = finished
     spec = yaml.safe_load(config.file.read_text())
     spec["settings"] = {k: v for k, v in spec["settings"].items() if k != "mappo"}
@@ -426,7 +428,7 @@ def test_a_sweep_on_ray_stops_on_a_signal_resumes_and_retries_a_killed_worker(fi
     kept = out / "runs" / "paper-2" / "shared-td3"
     shutil.copytree(config.out / "runs" / "paper-2" / "shared-td3", kept)
     with multiprocessing.get_context("spawn").Pool(1) as pool:
-        result = pool.apply(_sweep_on_ray, (tmp_path / "two.yaml", out))
+        result = pool.apply_async(_sweep_on_ray, (tmp_path / "two.yaml", out)).get(timeout=CHILD_TIMEOUT)
     assert result["code"] == 1 and "Traceback" not in result["stderr"], result["stderr"]
     assert "interrupted; every running run saved a checkpoint" in result["stderr"]
     assert "stops at its next chunk" in result["stdout"] and result["locks"] == []
