@@ -15,9 +15,10 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 import pytest
-from local_ray import CHILD_TIMEOUT, killing_a_worker, local_ray
+from local_ray import CHILD_TIMEOUT
 from scipy import stats
 
+import roverswarm.experiments.grid as grid_module
 import roverswarm.experiments.pool as pool_module
 from roverswarm.cli import main
 from roverswarm.config import config_from_json, with_options
@@ -637,23 +638,31 @@ def test_the_live_table_shows_a_ray_task_running_once_it_reported_and_done_once_
     assert board.report(runs[2].name, 0) is True  # told to stop as it starts
 
 
-def _reproduce_on_ray(config, base) -> list[int]:
-    """Run the grid on a local Ray cluster while a worker is killed; returns the killed pids."""
-    with local_ray(), killing_a_worker(after=1.0) as killed:  # let it get going first
-        reproduce(config, base, live=False)
-    return killed
+def test_the_ray_backend_gets_the_runs_left_its_address_and_retries(base, finished, tmp_path, monkeypatch):
+    """`reproduce --backend ray` hands the runs left to train, its --address and --retries to
+    the Ray backend (``run_ray``, tested on a local Ray cluster in test_sweep.py: a killed
+    worker retried, the numbers of the local backend); here they train in this process, and
+    the grid's report follows with the numbers of the local backend."""
+    calls = []
 
+    def ray_here(todo, summary, address, retries):
+        calls.append(([run.name for run in todo], address, retries))
+        pool_module.train_runs(todo, summary, 1, keep_programs=True)
 
-def test_ray_backend_retries_a_killed_worker_and_matches_the_local_backend(base, finished, tmp_path):
-    config = tiny_grid(tmp_path, scenarios=("paper-2",), algorithms=("maddpg",), backend="ray", jobs=None, retries=2)
-    with multiprocessing.get_context("spawn").Pool(1) as pool:
-        killed = pool.apply_async(_reproduce_on_ray, (config, base)).get(timeout=CHILD_TIMEOUT)
-    assert killed, "no worker was killed"
-    for algorithm in config.algorithms:
-        ours, local = (
-            seed_rows(root / "runs" / "paper-2" / algorithm / "metrics.csv") for root in (tmp_path, finished)
-        )
-        assert timeless(ours) == timeless(local)
+    monkeypatch.setattr(grid_module, "run_ray", ray_here)
+    config = tiny_grid(
+        tmp_path,
+        scenarios=("paper-2",),
+        algorithms=("maddpg",),
+        backend="ray",
+        jobs=None,
+        retries=2,
+        address="ray://x:1",
+    )
+    reproduce(config, base, live=False)
+    assert calls == [([run.name for run in plan(config, base)], "ray://x:1", 2)]
+    ours, local = (seed_rows(root / "runs" / "paper-2" / "maddpg" / "metrics.csv") for root in (tmp_path, finished))
+    assert timeless(ours) == timeless(local)
     assert (tmp_path / "report.md").exists()
 
 
