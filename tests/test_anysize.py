@@ -218,14 +218,14 @@ def test_a_size_agnostic_run_evaluates_on_sizes_it_never_saw(anysize_run, capsys
     from roverswarm.cli import main
 
     monkeypatch.setenv("COLUMNS", "250")  # the whole table on one line per row
-    assert main(["evaluate", str(anysize_run), "--episodes", "5", "--scenario", "paper-6"]) == 0
+    assert main(["evaluate", str(anysize_run), "--episodes", "20", "--scenario", "paper-6"]) == 0
     assert "paper-6" in capsys.readouterr().out
 
 
 def test_other_seeds_partners_fill_a_swarm_of_any_size(anysize_run):
     """--partners other-seeds at a size the run never trained on: rover i of seed s's swarm is
     seed (s + i) mod S's, for every one of the swarm's rovers (it once took the run's own size)."""
-    rows = evaluate_run(anysize_run, episodes=10, scenario="paper-3,5", partners="other-seeds")
+    rows = evaluate_run(anysize_run, episodes=20, scenario="paper-3,5", partners="other-seeds")
     mixed = [(r["scenario"], r["policy"]) for r in rows if r["policy"] not in ("random", "oracle")]
     assert mixed == [
         ("paper-3", "mappo agents of seeds 0/1/0"),
