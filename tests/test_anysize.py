@@ -38,31 +38,6 @@ from roverswarm.runs import Run
 
 
 @pytest.fixture(scope="module")
-def tiny_anysize():
-    """The anysize preset with attention over every entity, shrunk: sizes 2 to 4, small
-    networks, few episodes."""
-    options = {
-        "network": "entity",
-        "swarm_value": False,
-        "entity_nearest": 0,
-        "poi_order": "nearest",
-        "entity_dim": 8,
-        "entity_heads": 2,
-        "entity_layers": 1,
-    }
-    return dataclasses.replace(
-        with_options(ANYSIZE, {**options, "hidden": (16,), "epochs": 2, "minibatches": 2}),
-        scenario="paper-2..4",
-        size_curriculum=0,  # every size from the start (the preset's curriculum starts at 2 rovers)
-        episodes=200,
-        seeds=2,
-        num_envs=4,
-        log_every=100,
-        checkpoint_every=1,
-    )
-
-
-@pytest.fixture(scope="module")
 def anysize_run(tiny_anysize, tmp_path_factory):
     out = tmp_path_factory.mktemp("anysize")
     train(tiny_anysize, out=out, progress=False)

@@ -1,5 +1,6 @@
-"""The compiled chunk is keyed on what shapes the program: a second run in the same process
-with another seed and episode count compiles nothing new, for every learner family."""
+"""The compiled chunk is keyed on what shapes the program: a run compiles it once, and a second
+run in the same process with another seed and episode count compiles nothing new, for every
+learner family."""
 
 from __future__ import annotations
 
@@ -38,9 +39,11 @@ def test_another_seed_and_episode_count_compile_no_new_program(family, tiny_conf
     config, chunk = (tiny_config, offpolicy.run_chunk) if off else (tiny_ppo_config, onpolicy.run_chunk)
     # a replay shorter than the run (4000 transitions): its length changes no shape
     config = dataclasses.replace(config, episodes=200, seeds=1)
+    before = chunk._cache_size()
     with Compilations() as first:
         train(config, progress=False)
     programs = chunk._cache_size()
+    assert programs == before + 1  # its two chunks: one program
     assert first.events  # the listener sees compilations (this program is new to the process)
     with Compilations() as second:
         train(dataclasses.replace(config, seed=7, episodes=300), progress=False)
@@ -49,6 +52,14 @@ def test_another_seed_and_episode_count_compile_no_new_program(family, tiny_conf
     with Compilations() as third:  # what does shape the program still compiles one
         train(dataclasses.replace(config, seeds=2), progress=False)
     assert chunk._cache_size() == programs + 1 and third.events
+
+
+def test_a_run_of_the_entity_network_compiles_its_chunk_once(tiny_anysize):
+    """The runner a chunk returns has the types of the one it was given: a weakly typed initial
+    log-std (a Python float's) once made the second chunk compile the whole program again."""
+    before = onpolicy.run_chunk._cache_size()
+    train(tiny_anysize, progress=False)  # two chunks
+    assert onpolicy.run_chunk._cache_size() == before + 1
 
 
 @pytest.mark.parametrize("family", ["off-policy", "on-policy"])
