@@ -123,7 +123,7 @@ def test_resume_after_sigkill_gives_the_numbers_of_an_unbroken_run(tiny_config, 
         "mappo": (tiny_ppo_config, {}),
     }[kind]
     out = tmp_path / "killed"
-    config = with_options(base, {**options, "episodes": 2000})
+    config = with_options(base, {**options, "episodes": 1000})  # 10 chunks, killed at its first checkpoint
     reference = train(config, progress=False)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     process = subprocess.Popen(
