@@ -174,7 +174,8 @@ def _entity_kind(learner: AlgoConfig, config: Any) -> PolicyNetworks:
 
     def init(key, num_rovers, obs_size):
         k_actor, k_critic = jax.random.split(key)
-        # float32, not weakly typed as a Python float makes it: the first chunk compiled twice
+        # float32, as the runner a chunk returns holds it (a Python float's weak type made the
+        # second chunk compile the whole program again)
         log_std = jnp.full((ACTION_SIZE,), config.init_log_std, jnp.float32)
         return {"net": nets.init_actor(k_actor), "log_std": log_std}, nets.init_value(k_critic)
 
