@@ -123,7 +123,7 @@ def test_the_swarm_preset_over_the_nearest_view_learns_across_sizes_and_beats_ra
     preset's 25,600 took the first 1000 episodes): every seed beats random by a wide margin at
     paper-2 and paper-3 and at paper-5, never trained on (0.63 / 0.41, 0.47 / 0.38, 0.44 / 0.38
     when written; 3000 episodes with the preset's warm-up gave 0.34 / 0.47, 0.38 / 0.38,
-    0.35 / 0.34 in about 1.1 times the time)."""
+    0.35 / 0.34 with about 1.1 times the updates)."""
     options = {**NEAREST, "entity_nearest": 2, "scenario": "paper-2..3", "size_curriculum": 1000}
     options |= {"episodes": 2000, "warmup": 5000, "log_every": 500}
     train(with_options(SWARM, options | {"seeds": 2}), out=tmp_path, progress=False)
