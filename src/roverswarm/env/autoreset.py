@@ -56,18 +56,21 @@ def _zeros(shapes: Any, leading: tuple[int, ...] = ()) -> Any:
 def _sparse(fn: Callable[..., Any], every: int):
     """The ``custom_vmap`` version of ``fn`` behind :func:`where_done` (one per ``fn`` and ``every``)."""
 
+    # jitted, one trace of ``fn`` serves both the zeros' shapes and the call (XLA inlines it)
+    once = jax.jit(fn)
+
     @custom_vmap
     def sparse(done, *args):
-        return jax.lax.cond(done, lambda: fn(*args), lambda: _zeros(jax.eval_shape(fn, *args)))
+        return jax.lax.cond(done, lambda: once(*args), lambda: _zeros(jax.eval_shape(once, *args)))
 
     @sparse.def_vmap
     def sparse_batched(size: int, in_batched: list, done, *args):
         done_batched, *args_batched = in_batched
         if not any(jax.tree.leaves(args_batched)):  # every row would compute the same thing
-            out = jax.tree.map(lambda x: jnp.broadcast_to(x, (size, *x.shape)), fn(*args))
+            out = jax.tree.map(lambda x: jnp.broadcast_to(x, (size, *x.shape)), once(*args))
         else:
             done = done if done_batched else jnp.broadcast_to(done, (size,))
-            out = _fresh_rows(fn, done, args, args_batched, min(size, 2 * math.ceil(size / every)))
+            out = _fresh_rows(once, done, args, args_batched, min(size, 2 * math.ceil(size / every)))
         return out, jax.tree.map(lambda _: True, out)
 
     return sparse
