@@ -54,7 +54,7 @@ def release_compiled_programs(only_if_crowded: bool = False) -> None:
     thousands of them (a long grid or sweep, the test suite) reaches Linux's limit of 65,530
     mappings (``vm.max_map_count``), and the next compilation crashes with a segfault. Grids
     and sweeps check between runs (recompiling costs seconds per run, so they release only
-    when crowded); the tests release after each module.
+    when crowded), as do the tests after each module.
 
     The memory the programs held goes back to the system (:func:`return_free_memory`)."""
     if only_if_crowded and memory_mappings() < CROWDED:
