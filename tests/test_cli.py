@@ -9,7 +9,7 @@ import imageio.v2 as imageio
 import numpy as np
 import pytest
 
-from roverswarm.cli import main, print_table
+from roverswarm.cli import SIGPIPE_EXIT, main, print_table
 from roverswarm.env import SCENARIOS, get_scenario
 from roverswarm.env.mars import observation_size
 
@@ -244,3 +244,18 @@ def test_out_and_resume_may_spell_one_folder_two_ways(tmp_path, capsys, monkeypa
         err = capsys.readouterr().err
         expected = "name different folders" if out == "r2" else "--resume: no run to continue in"
         assert expected in err and err.count("\n") == 1, err
+
+
+@pytest.mark.parametrize("argv", [["train", "--help"], ["scenarios"]])
+def test_output_into_a_closed_pipe_ends_quietly(argv):
+    """`roverswarm train --help | head -1`: the reader goes away before the output ends; the
+    command stops with the shell's code for it (141, as `yes | head`) and no traceback."""
+    import os
+    import subprocess
+    import sys
+
+    read, write = os.pipe()
+    os.close(read)  # the reader is gone before the first line
+    with os.fdopen(write, "wb") as stdout:
+        done = subprocess.run([sys.executable, "-m", "roverswarm.cli", *argv], stdout=stdout, stderr=subprocess.PIPE)
+    assert done.returncode == SIGPIPE_EXIT and done.stderr == b"", done.stderr.decode()

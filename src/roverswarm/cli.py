@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import os
 import re
 import sys
 from dataclasses import dataclass, field
@@ -108,11 +109,18 @@ def run_sweep(cmd: SweepConfig) -> None:
     _console().print(f"wrote {', '.join(str(path) for path in written if path.exists())}")
 
 
+class _Console(Console):
+    def on_broken_pipe(self) -> None:
+        """The output's reader went away: :func:`main` ends the command (rich would exit with
+        1, the code of a stopped run)."""
+        raise BrokenPipeError
+
+
 def _console(**options) -> Console:
     """A console that prints text as it is, not as rich markup: a folder named 'run[v1]' or
     'a[/b]' is printed whole (as markup the first lost its '[v1]', the second raised an error
     after the work was done)."""
-    return Console(markup=False, **options)
+    return _Console(markup=False, **options)
 
 
 def print_table(title: str, rows: list[dict[str, object]], left: tuple[str, ...]) -> None:
@@ -350,9 +358,23 @@ def _parse(commands: tuple, argv: list[str]):
     return cmd
 
 
+SIGPIPE_EXIT = 141
+"""The exit code of a command whose output's reader went away (``roverswarm train --help | head``):
+a shell's code for a process that SIGPIPE ended (128 + 13), as ``yes | head`` gives."""
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``roverswarm`` command. Returns the exit code (0, or 2 for user errors)."""
-    argv = sys.argv[1:] if argv is None else argv
+    """Entry point of the ``roverswarm`` command. Returns the exit code (0, 2 for user errors,
+    :data:`SIGPIPE_EXIT` when what reads the output closes it early)."""
+    try:
+        return _main(sys.argv[1:] if argv is None else argv)
+    except BrokenPipeError:
+        # the rest of the output, and Python's flush at exit, go nowhere instead of a traceback
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return SIGPIPE_EXIT
+
+
+def _main(argv: list[str]) -> int:
     defaults = _train_defaults(argv)
     commands = tuple(
         Annotated[cls, tyro.conf.subcommand(name=name, **({"default": defaults[name]} if name in defaults else {}))]
@@ -372,6 +394,8 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as error:
         print(f"roverswarm: error: {error}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # the output's reader went away: see main
+        raise
     except OSError as error:  # a full disk, a read-only or vanished folder: what the machine refused, in one line
         where = f" '{error.filename}'" if error.filename else ""
         print(f"roverswarm: error: cannot read or write{where}: {error.strerror or error}", file=sys.stderr)
