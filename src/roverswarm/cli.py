@@ -110,6 +110,8 @@ def run_sweep(cmd: SweepConfig) -> None:
 
 
 class _Console(Console):
+    """rich's console, but a closed pipe is left to :func:`main`."""
+
     def on_broken_pipe(self) -> None:
         """The output's reader went away: :func:`main` ends the command (rich would exit with
         1, the code of a stopped run)."""
@@ -359,7 +361,7 @@ def _parse(commands: tuple, argv: list[str]):
 
 
 SIGPIPE_EXIT = 141
-"""The exit code of a command whose output's reader went away (``roverswarm train --help | head``):
+"""The exit code of a command whose output's reader went away (``roverswarm reproduce --help | head``):
 a shell's code for a process that SIGPIPE ended (128 + 13), as ``yes | head`` gives."""
 
 
