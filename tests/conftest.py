@@ -149,20 +149,13 @@ def tiny_anysize():
     networks, few episodes."""
     import dataclasses
 
+    from configs import SMALL_ENTITY  # tests/configs.py
+
     from roverswarm.config import with_options
     from roverswarm.presets import ANYSIZE
 
-    options = {
-        "network": "entity",
-        "swarm_value": False,
-        "entity_nearest": 0,
-        "poi_order": "nearest",
-        "entity_dim": 8,
-        "entity_heads": 2,
-        "entity_layers": 1,
-    }
     return dataclasses.replace(
-        with_options(ANYSIZE, {**options, "hidden": (16,), "epochs": 2, "minibatches": 2}),
+        with_options(ANYSIZE, {**SMALL_ENTITY, "hidden": (16,), "epochs": 2, "minibatches": 2}),
         scenario="paper-2..4",
         size_curriculum=0,  # every size from the start (the preset's curriculum starts at 2 rovers)
         episodes=200,

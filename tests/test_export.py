@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 import onnxruntime as ort
 import pytest
+from configs import SMALL_ENTITY  # tests/configs.py
 
 from roverswarm import export_numpy
 from roverswarm.config import TrainConfig, config_to_json, validate, with_options
@@ -42,21 +43,12 @@ def tiny(base: TrainConfig, options: dict, scenario: str) -> TrainConfig:
     return dataclasses.replace(options, scenario=scenario, episodes=100, log_every=100, num_envs=4, seeds=2)
 
 
-ENTITY = {
-    "network": "entity",
-    "swarm_value": False,
-    "entity_nearest": 0,
-    "poi_order": "nearest",
-    "entity_dim": 8,
-    "entity_heads": 2,
-    "entity_layers": 2,
-}
 KINDS = {  # every actor kind: per-rover and shared off-policy actors, the on-policy mlp, entity and nearest
     "maddpg": tiny(TrainConfig(), {"hidden": (16, 16), "layer_norm": True, "normalize_obs": True}, "paper-2"),
     "ddpg-shared": tiny(SWARM, {"algo": "ddpg", "hidden": (16,), "normalize_obs": True}, "paper-3"),
     "mappo": tiny(MAPPO, {"hidden": (16,)}, "paper-3"),
     "ippo": tiny(IPPO, {"hidden": (16, 16), "activation": "relu"}, "paper-2"),
-    "entity": tiny(ANYSIZE, {**ENTITY, "hidden": (16,)}, "paper-2..4"),
+    "entity": tiny(ANYSIZE, {**SMALL_ENTITY, "entity_layers": 2, "hidden": (16,)}, "paper-2..4"),
     "nearest": tiny(ANYSIZE, {"hidden": (16,), "entity_nearest": 2}, "paper-2..4"),
     "nearest-shield": tiny(ANYSIZE, {"hidden": (16,), "entity_nearest": 2, "shield": True}, "paper-2..4"),
     "maddpg-nearest": tiny(
