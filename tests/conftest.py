@@ -1,5 +1,6 @@
 """Shared test setup: XLA flags for fast compilation, the compilation cache, compiled programs released
-when they crowd the memory mappings, small shared configurations, a signal fixture."""
+when they crowd the memory mappings, small shared configurations, a signal fixture, the CLI into a
+closed pipe."""
 
 from __future__ import annotations
 
@@ -195,3 +196,19 @@ def signal_at_chunk(monkeypatch):
         return lambda: FAMILIES.update(real)
 
     return arm
+
+
+@pytest.fixture
+def cli_into_closed_pipe():
+    """``run(*argv)``: ``roverswarm ARGV | head -0`` in a child process, its stdout a pipe whose
+    reader is gone before the first line (a shell would report SIGPIPE); returns the finished
+    process, stderr as text."""
+
+    def run(*argv: str) -> subprocess.CompletedProcess:
+        read, write = os.pipe()
+        os.close(read)
+        with os.fdopen(write, "wb") as stdout:
+            command = [sys.executable, "-m", "roverswarm.cli", *argv]
+            return subprocess.run(command, stdout=stdout, stderr=subprocess.PIPE, text=True)
+
+    return run

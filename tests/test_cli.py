@@ -248,16 +248,9 @@ def test_out_and_resume_may_spell_one_folder_two_ways(tmp_path, capsys, monkeypa
 
 
 @pytest.mark.parametrize("argv", [["train", "--help"], ["scenarios"]])
-def test_output_into_a_closed_pipe_ends_quietly(argv):
+def test_output_into_a_closed_pipe_ends_quietly(argv, cli_into_closed_pipe):
     """`roverswarm reproduce --help | head -1`: the reader goes away before the output ends; the
     command stops with the shell's code for it (141, as `yes | head`), saying nothing."""
-    import os
-    import subprocess
-    import sys
-
-    read, write = os.pipe()
-    os.close(read)  # the reader is gone before the first line
-    with os.fdopen(write, "wb") as stdout:
-        done = subprocess.run([sys.executable, "-m", "roverswarm.cli", *argv], stdout=stdout, stderr=subprocess.PIPE)
-    said = done.stderr.decode()
+    done = cli_into_closed_pipe(*argv)
+    said = done.stderr
     assert done.returncode == SIGPIPE_EXIT and "Traceback" not in said and "Error" not in said, said

@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from roverswarm.animation import episode_frames
-from roverswarm.cli import main
+from roverswarm.cli import SIGPIPE_EXIT, main
 from roverswarm.config import with_options
 from roverswarm.errors import UserError
 from roverswarm.evaluate import evaluate_run
@@ -102,6 +102,18 @@ def test_a_rerun_keeps_finished_runs(finished, monkeypatch):
     config, _ = finished
     monkeypatch.setattr(pool_module, "train", lambda *a, **k: pytest.fail("a finished run was trained again"))
     sweep(config, live=False)
+
+
+def test_a_rerun_into_a_closed_pipe_ends_quietly_with_its_table_written(finished, cli_into_closed_pipe):
+    """`roverswarm sweep FILE | head -0`: the live table's last print meets the closed pipe; the
+    command ends with the shell's code for it (141), not rich's 1 of a stopped run, and the
+    table is written as before."""
+    config, table = finished
+    before = table.read_text()
+    table.unlink()
+    done = cli_into_closed_pipe("sweep", str(config.file), "--out", str(config.out), "--eval-episodes", "50")
+    assert done.returncode == SIGPIPE_EXIT and "Traceback" not in done.stderr, done.stderr
+    assert table.read_text() == before
 
 
 def test_a_sweep_of_more_episodes_extends_its_finished_runs_and_refuses_fewer(finished, tmp_path):

@@ -18,13 +18,13 @@ from typing import Annotated, Callable, Literal, Union
 
 import tyro
 from rich.cells import cell_len
-from rich.console import Console
 from rich.measure import Measurement
 from rich.segment import Segment
 from rich.table import Table
 
 from roverswarm.animation import RenderConfig
 from roverswarm.config import TrainConfig, fields_by_name, resumed_config
+from roverswarm.console import console as _console
 from roverswarm.errors import RunStopped, UserError, require
 from roverswarm.evaluate import EvaluateConfig
 from roverswarm.experiments import ReproduceConfig, reproduce
@@ -107,22 +107,6 @@ def run_sweep(cmd: SweepConfig) -> None:
     _console().print(table.read_text(), soft_wrap=True)
     written = [table, table.with_suffix(".csv"), table.with_suffix(".png")]
     _console().print(f"wrote {', '.join(str(path) for path in written if path.exists())}")
-
-
-class _Console(Console):
-    """rich's console, but a closed pipe is left to :func:`main`."""
-
-    def on_broken_pipe(self) -> None:
-        """The output's reader went away: :func:`main` ends the command (rich would exit with
-        1, the code of a stopped run)."""
-        raise BrokenPipeError
-
-
-def _console(**options) -> Console:
-    """A console that prints text as it is, not as rich markup: a folder named 'run[v1]' or
-    'a[/b]' is printed whole (as markup the first lost its '[v1]', the second raised an error
-    after the work was done)."""
-    return _Console(markup=False, **options)
 
 
 def print_table(title: str, rows: list[dict[str, object]], left: tuple[str, ...]) -> None:

@@ -15,9 +15,9 @@ from typing import Literal
 
 import jax
 import tyro
-from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from roverswarm.console import console
 from roverswarm.env.mars import EnvParams
 from roverswarm.env.scenarios import get_scenario, range_sizes, scenario_sizes
 from roverswarm.errors import require
@@ -106,12 +106,12 @@ def _progress(enabled: bool) -> Iterator[Callable[[str, int], None]]:
     """Yields ``show(what, total)``, called before each rollout: on an interactive terminal
     (and ``enabled``) a transient bar of what runs now out of ``total``; elsewhere nothing at
     all, not even an empty line."""
-    console = Console()
-    if not (enabled and console.is_interactive):
+    output = console()
+    if not (enabled and output.is_interactive):
         yield lambda what, total: None
         return
     columns = (TextColumn("{task.description}", markup=False), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
-    with Progress(*columns, console=console, transient=True) as bar:
+    with Progress(*columns, console=output, transient=True) as bar:
         task, done = bar.add_task("evaluating"), itertools.count()
         yield lambda what, total: bar.update(task, description=what, total=total, completed=next(done), refresh=True)
 

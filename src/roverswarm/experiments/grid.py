@@ -15,10 +15,10 @@ import shutil
 from contextlib import ExitStack
 from typing import Callable
 
-from rich.console import Console
 from rich.live import Live
 
 from roverswarm.config import TrainConfig, validate_training
+from roverswarm.console import console
 from roverswarm.errors import RunStopped, within
 from roverswarm.experiments.arms import GridRun, ReproduceConfig, check_evaluations, plan, status
 from roverswarm.experiments.live import Summary
@@ -58,7 +58,7 @@ def run_grid(config: ReproduceConfig, base: TrainConfig | None = None, live: boo
         execute = lambda: train_runs(todo, summary, jobs, config.keep_programs)  # noqa: E731
     try:
         if live:
-            with Live(summary, console=Console(), refresh_per_second=2):
+            with Live(summary, console=console(), refresh_per_second=2):
                 execute()
         else:
             execute()

@@ -12,9 +12,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from rich.console import Console
 
 from roverswarm.config import TrainConfig, config_to_json
+from roverswarm.console import console
 from roverswarm.experiments.arms import GridRun, ReproduceConfig
 from roverswarm.experiments.figures import figure8, figure9
 from roverswarm.experiments.grid import run_grid
@@ -64,7 +64,7 @@ def time_arms(config: ReproduceConfig, runs: list[GridRun]) -> dict[tuple[str, s
         kept = (settings.get((scenario, r.algorithm)) == settings_of(r.config) for r in arms)
         if all(kept) and all(len(timed.get((scenario, r.algorithm), [])) >= chunks for r in arms):
             continue
-        Console().print(f"timing {scenario}: {len(arms)} arms x {chunks} chunks, back to back")
+        console().print(f"timing {scenario}: {len(arms)} arms x {chunks} chunks, back to back")
         for run, seconds in zip(arms, chunk_seconds([r.config for r in arms], chunks)):
             timed[(scenario, run.algorithm)] = [s * 1000 / run.config.log_every for s in seconds]
             settings[(scenario, run.algorithm)] = settings_of(run.config)

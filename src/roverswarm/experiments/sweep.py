@@ -40,10 +40,10 @@ from pathlib import Path
 
 import numpy as np
 import tyro
-from rich.console import Console
 from rich.live import Live
 
 from roverswarm.config import validate_training, with_options
+from roverswarm.console import console
 from roverswarm.env.scenarios import scenario_sizes
 from roverswarm.errors import UserError, require, within
 from roverswarm.experiments.arms import (
@@ -349,7 +349,7 @@ def sweep(config: SweepConfig, live: bool = True) -> Path:
 
     with folder_lock(config.out):  # one writer at a time
         if live:
-            with Live(summary, console=Console(), refresh_per_second=1):
+            with Live(summary, console=console(), refresh_per_second=1):
                 execute()
         else:
             execute()
