@@ -118,6 +118,24 @@ def test_stop_when_complete_ends_an_episode_once_every_poi_is_observed(tiny_anys
         assert not rewards[last + 1 :].any()
 
 
+def test_the_sizes_are_drawn_from_bits_no_layout_uses(tiny_anysize, monkeypatch):
+    """The key of the swarm sizes is none of the environments' layout keys nor of the keys a
+    layout draws its POIs, traps and rovers from (it was environment 1's: its layout and the
+    sizes came from the same bits)."""
+    import roverswarm.episodes as episodes_module
+
+    config = configure(tiny_anysize, validate(tiny_anysize))
+    drawn = []
+    real = episodes_module.draw_sizes
+    monkeypatch.setattr(episodes_module, "draw_sizes", lambda key, *args: drawn.append(key) or real(key, *args))
+    key = jax.random.PRNGKey(3)
+    reset_all(config, training_params(config, validate(tiny_anysize)), key, jnp.asarray(0))
+    layouts = jax.random.split(key, config.num_envs)
+    used = np.concatenate([np.asarray(layouts), *(np.asarray(jax.random.split(k, 3)) for k in layouts)])
+    (size_key,) = drawn
+    assert not (used == np.asarray(size_key)).all(axis=-1).any()
+
+
 def test_fail_max_rovers_fails_and_shapes_only_the_small_swarms(tiny_anysize):
     """--fail-max-rovers 3 over paper-2..4 with --fail-rate 1: every episode of 2 or 3 rovers
     has one failing rover and none of 4 has; the unobserved shaping changes the rewards of the

@@ -69,8 +69,14 @@ def reset_all(config, params: EnvParams, key: jax.Array, episodes: jax.Array) ->
     sizes = sizes_of(config)
     if sizes is None:
         return jax.vmap(reset, in_axes=(0, None))(keys, params)[1]
+    # the sizes' key is the layouts' next sibling: fold_in(key, i) is split(key, E)[i], so
+    # fold_in(key, 1) drew environment 1's layout from the sizes' bits
     counts = draw_sizes(
-        jax.random.fold_in(key, 1), sizes, config.num_envs, size_cap(config, episodes), config.size_draw_power
+        jax.random.fold_in(key, config.num_envs),
+        sizes,
+        config.num_envs,
+        size_cap(config, episodes),
+        config.size_draw_power,
     )
     return jax.vmap(lambda k, n: reset(k, _failures_up_to(config, sized(params, n), n)))(keys, counts)[1]
 
