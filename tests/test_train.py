@@ -528,6 +528,26 @@ def test_evaluate_reports_policies_beside_random_and_oracle(unbroken, capsys, mo
     assert all(f"{r['episode_reward']:.3f}" in out and f"{r['normalized_score']:.3f}" in out for r in rows)
 
 
+def test_the_references_roll_out_once_per_size_seed_and_episode_count(unbroken, monkeypatch):
+    """Another evaluation at the same size, seed and episode count (another run of a grid, say)
+    is scored against the same random and oracle episodes without rolling them out again; another
+    seed or episode count rolls them out anew."""
+    import roverswarm.evaluate as evaluate_module
+
+    evaluate_module._reference_summary.cache_clear()
+    first = evaluate_run(unbroken.out, episodes=50, seed=7)
+    rolled, real = [], evaluate_module.rollout
+    monkeypatch.setattr(
+        evaluate_module, "rollout", lambda policy, *args: rolled.append(policy.name) or real(policy, *args)
+    )
+    assert evaluate_run(unbroken.out, episodes=50, seed=7) == first
+    assert rolled == ["maddpg seed 0", "maddpg seed 1"]
+    for seed, episodes in ((8, 50), (7, 5)):
+        rolled.clear()
+        evaluate_run(unbroken.out, episodes=episodes, seed=seed)
+        assert rolled == ["random", "oracle", "maddpg seed 0", "maddpg seed 1"]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("algo", ["maddpg", "ddpg"])
 def test_a_short_run_learns_to_beat_random_by_a_wide_margin(algo, tmp_path):

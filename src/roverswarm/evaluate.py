@@ -6,6 +6,7 @@ Every policy runs the same episodes (same layouts, same key); the normalised sco
 
 from __future__ import annotations
 
+import functools
 import itertools
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -22,7 +23,7 @@ from roverswarm.env.mars import EnvParams
 from roverswarm.env.scenarios import get_scenario, range_sizes, scenario_sizes
 from roverswarm.errors import require
 from roverswarm.limits import check_seed
-from roverswarm.policies import ORACLE, RANDOM, shielded
+from roverswarm.policies import ORACLE, RANDOM, REFERENCE_POLICIES, shielded
 from roverswarm.rollout import normalized_score, rollout
 from roverswarm.runs import Partners, Run, SubPolicies, check_fits, check_rollout_memory
 
@@ -91,7 +92,10 @@ def evaluate_run(
             results = {}
             for policy in policies:  # the same number at every size
                 show(f"{name}: {policy.name}, {episodes} episodes", len(targets) * len(policies))
-                results[policy.name] = rollout(policy, key, params, episodes).stats.summary()
+                if policy.name in REFERENCE_POLICIES:
+                    results[policy.name] = dict(_reference_summary(policy.name, seed, params, episodes))
+                else:
+                    results[policy.name] = rollout(policy, key, params, episodes).stats.summary()
             low, high = results["random"]["episode_reward"], results["oracle"]["episode_reward"]
             for policy, summary in results.items():
                 score = normalized_score(summary["episode_reward"], low, high)
@@ -99,6 +103,16 @@ def evaluate_run(
                     {**({"scenario": name} if named else {}), "policy": policy, **summary, "normalized_score": score}
                 )
     return rows
+
+
+@functools.lru_cache(maxsize=256)
+def _reference_summary(name: str, seed: int, params: EnvParams, episodes: int) -> dict[str, float]:
+    """The summary of reference policy ``name`` (random, the oracle) on ``episodes`` episodes
+    of ``params`` from key ``seed``, rolled out once per process: every run of a grid or sweep
+    at one size is scored against the same references, which depend on nothing of the run's
+    (a few seconds each time, most of it preparing the rollout's programs again after a run
+    released them)."""
+    return rollout(REFERENCE_POLICIES[name], jax.random.PRNGKey(seed), params, episodes).stats.summary()
 
 
 @contextmanager
