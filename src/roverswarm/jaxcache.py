@@ -53,8 +53,9 @@ def release_compiled_programs(only_if_crowded: bool = False) -> None:
     released, and JAX keeps every program of a jitted function alive. A process that compiles
     thousands of them (a long grid or sweep, the test suite) reaches Linux's limit of 65,530
     mappings (``vm.max_map_count``), and the next compilation crashes with a segfault. Grids
-    and sweeps check between runs (recompiling costs seconds per run, so they release only
-    when crowded), as do the tests after each module.
+    and sweeps release them after every run (``reproduce`` also after every run's evaluation;
+    with ``--keep-programs`` only when crowded: tiny runs reload their programs in seconds
+    each); the tests check after each module and release only when crowded.
 
     The memory the programs held goes back to the system (:func:`return_free_memory`)."""
     if only_if_crowded and memory_mappings() < CROWDED:
