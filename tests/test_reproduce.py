@@ -41,8 +41,18 @@ def base(tiny_config):
 
 def tiny_grid(out: Path, **changes) -> ReproduceConfig:
     """A grid of tiny runs, trained in this process unless ``changes`` say otherwise."""
-    defaults = dict(out=out, scenarios=SCENARIOS, seeds=2, episodes=400, jobs=1, eval_episodes=50, keep_programs=True)
-    return ReproduceConfig(**{**defaults, **changes})
+    defaults = dict(out=out, scenarios=SCENARIOS, seeds=2, episodes=400, jobs=1, eval_episodes=50)
+    return ReproduceConfig(**{**defaults, **changes})  # runs this short keep their compiled programs
+
+
+@pytest.mark.parametrize(
+    "changes, kept",
+    [({"quick": True}, True), ({"episodes": 4000}, True), ({}, False), ({"keep_programs": True}, True)],
+)
+def test_a_grid_of_short_runs_keeps_its_programs_and_a_long_one_releases_them_unless_asked(changes, kept):
+    """Runs under 5000 episodes (--quick's 2000) keep their compiled programs until crowded;
+    the paper's 60,000-episode runs release them after each run unless --keep-programs."""
+    assert ReproduceConfig(**changes).grid_keep_programs == kept
 
 
 def timeless(rows: dict[int, list[dict[str, float]]]) -> dict[int, list[dict[str, float]]]:

@@ -54,8 +54,9 @@ def release_compiled_programs(only_if_crowded: bool = False) -> None:
     thousands of them (a long grid or sweep, the test suite) reaches Linux's limit of 65,530
     mappings (``vm.max_map_count``), and the next compilation crashes with a segfault. Grids
     and sweeps release them after every run (``reproduce`` also after every run's evaluation;
-    with ``--keep-programs`` only when crowded: tiny runs reload their programs in seconds
-    each); the tests check after each module and release only when crowded.
+    with ``--keep-programs``, and in a grid of runs under 5000 episodes, only when crowded:
+    short runs would spend much of their time loading their programs again); the tests check
+    after each module and release only when crowded.
 
     The memory the programs held goes back to the system (:func:`return_free_memory`)."""
     if only_if_crowded and memory_mappings() < CROWDED:

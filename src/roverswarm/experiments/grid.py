@@ -55,7 +55,7 @@ def run_grid(config: ReproduceConfig, base: TrainConfig | None = None, live: boo
         execute: Callable[[], None] = lambda: run_ray(todo, summary, config.address, config.retries)  # noqa: E731
     else:
         jobs = config.jobs or default_jobs(todo)
-        execute = lambda: train_runs(todo, summary, jobs, config.keep_programs)  # noqa: E731
+        execute = lambda: train_runs(todo, summary, jobs, config.grid_keep_programs)  # noqa: E731
     try:
         if live:
             with Live(summary, console=console(), refresh_per_second=2):

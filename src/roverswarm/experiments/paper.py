@@ -106,7 +106,7 @@ def _reproduce(config: ReproduceConfig, base: TrainConfig | None, live: bool) ->
     timed = time_arms(config, runs)
     results = [load(run, timed) for run in runs]
     rows = table1(results)
-    final = final_policies(results, config.grid_eval_episodes, config.keep_programs)
+    final = final_policies(results, config.grid_eval_episodes, config.grid_keep_programs)
     config.out.mkdir(parents=True, exist_ok=True)
     write_csv(config.out / "table1.csv", rows, TABLE1_COLUMNS)
     write_csv(config.out / "final_policies.csv", final)
