@@ -602,6 +602,7 @@ def test_train_on_a_mission_then_run_the_policy_and_refuse_a_mismatch(tiny_confi
     import dataclasses
 
     from roverswarm.config import TrainConfig
+    from roverswarm.evaluate import evaluate_run
     from roverswarm.runs import Run
     from roverswarm.trainer import train
 
@@ -624,6 +625,8 @@ def test_train_on_a_mission_then_run_the_policy_and_refuse_a_mismatch(tiny_confi
     train(Run(tmp_path / "run").config, out=tmp_path / "run", resume=True, progress=False)
     data = rollout(policy, jax.random.PRNGKey(0), mission.params, 1)
     np.testing.assert_allclose(data.poi_pos[0], mission.params.fixed_pois)
+    rows = evaluate_run(tmp_path / "run", episodes=5)  # on the mission's layout, arrays in its params
+    assert [r["policy"] for r in rows] == ["random", "oracle", "maddpg seed 0"] and rows[1]["normalized_score"] == 1.0
     with pytest.raises(
         UserError,
         match=r"trained for 3 rovers, 3 POIs, 3 traps \(mission mission\); "

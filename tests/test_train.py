@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from tensorboardX.proto.event_pb2 import Event, SessionLog
@@ -31,6 +32,7 @@ from roverswarm.errors import RunStopped, UserError
 from roverswarm.evaluate import evaluate_run
 from roverswarm.learners import FAMILIES, offpolicy
 from roverswarm.learners.offpolicy import run_buffer
+from roverswarm.policies import ORACLE
 from roverswarm.presets import REFERENCE, SWARM
 from roverswarm.runs import CHECKPOINT, LOCK, METRICS, Run, folder_lock, read_metrics, write_csv
 from roverswarm.storage import atomic_write, trained_episodes
@@ -531,10 +533,10 @@ def test_evaluate_reports_policies_beside_random_and_oracle(unbroken, capsys, mo
 def test_the_references_roll_out_once_per_size_seed_and_episode_count(unbroken, monkeypatch):
     """Another evaluation at the same size, seed and episode count (another run of a grid, say)
     is scored against the same random and oracle episodes without rolling them out again; another
-    seed or episode count rolls them out anew."""
+    seed, episode count or layout (a mission's arrays) rolls them out anew."""
     import roverswarm.evaluate as evaluate_module
 
-    evaluate_module._reference_summary.cache_clear()
+    evaluate_module._references.clear()
     first = evaluate_run(unbroken.out, episodes=50, seed=7)
     rolled, real = [], evaluate_module.rollout
     monkeypatch.setattr(
@@ -546,6 +548,13 @@ def test_the_references_roll_out_once_per_size_seed_and_episode_count(unbroken, 
         rolled.clear()
         evaluate_run(unbroken.out, episodes=episodes, seed=seed)
         assert rolled == ["random", "oracle", "maddpg seed 0", "maddpg seed 1"]
+    rolled.clear()
+    params = Run(unbroken.out).params
+    for pois in ([[0.5, 0.5], [-0.5, 0.5]], [[0.5, 0.5], [-0.5, 0.5]], [[0.5, 0.5], [0.5, -0.5]]):
+        fixed = params.replace(fixed_pois=jnp.asarray(pois))
+        fresh = real(ORACLE, jax.random.PRNGKey(7), fixed, 5).stats.summary()
+        assert evaluate_module.reference_summary("oracle", 7, fixed, 5) == fresh
+    assert rolled == ["oracle", "oracle"]  # the second layout is the first's values
 
 
 @pytest.mark.slow

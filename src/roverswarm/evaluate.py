@@ -6,7 +6,6 @@ Every policy runs the same episodes (same layouts, same key); the normalised sco
 
 from __future__ import annotations
 
-import functools
 import itertools
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -15,6 +14,7 @@ from pathlib import Path
 from typing import Literal
 
 import jax
+import numpy as np
 import tyro
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -93,7 +93,7 @@ def evaluate_run(
             for policy in policies:  # the same number at every size
                 show(f"{name}: {policy.name}, {episodes} episodes", len(targets) * len(policies))
                 if policy.name in REFERENCE_POLICIES:
-                    results[policy.name] = dict(_reference_summary(policy.name, seed, params, episodes))
+                    results[policy.name] = reference_summary(policy.name, seed, params, episodes)
                 else:
                     results[policy.name] = rollout(policy, key, params, episodes).stats.summary()
             low, high = results["random"]["episode_reward"], results["oracle"]["episode_reward"]
@@ -105,14 +105,26 @@ def evaluate_run(
     return rows
 
 
-@functools.lru_cache(maxsize=256)
-def _reference_summary(name: str, seed: int, params: EnvParams, episodes: int) -> dict[str, float]:
+REFERENCES_KEPT = 256
+"""Reference summaries :func:`reference_summary` keeps per process (the oldest go first)."""
+_references: dict[tuple, dict[str, float]] = {}
+
+
+def reference_summary(name: str, seed: int, params: EnvParams, episodes: int) -> dict[str, float]:
     """The summary of reference policy ``name`` (random, the oracle) on ``episodes`` episodes
     of ``params`` from key ``seed``, rolled out once per process: every run of a grid or sweep
     at one size is scored against the same references, which depend on nothing of the run's
     (a few seconds each time, most of it preparing the rollout's programs again after a run
-    released them)."""
-    return rollout(REFERENCE_POLICIES[name], jax.random.PRNGKey(seed), params, episodes).stats.summary()
+    released them). ``params`` is keyed by its values, arrays included (a mission's layout)."""
+    leaves, structure = jax.tree.flatten(params)
+    values = tuple((a.dtype.str, a.shape, a.tobytes()) for a in map(np.asarray, leaves))
+    key = (name, seed, episodes, structure, values)
+    if key not in _references:
+        if len(_references) >= REFERENCES_KEPT:
+            del _references[next(iter(_references))]
+        policy = REFERENCE_POLICIES[name]
+        _references[key] = rollout(policy, jax.random.PRNGKey(seed), params, episodes).stats.summary()
+    return dict(_references[key])
 
 
 @contextmanager
