@@ -321,6 +321,56 @@ RANKED_OPTIONS = dict(
 """The ranked replay in Schaul's 1/rank reading, with importance weights whose exponent rises from 0.5."""
 
 
+def test_a_resume_holds_one_replay_and_no_host_copy_of_it(tiny_config, tmp_path, monkeypatch):
+    """``load_checkpoint`` reads a checkpoint's arrays one at a time, pads the replay back to
+    its capacity on the device and lets go of the fresh runner's empty replay array by array:
+    numpy's allocations (traced) peak below a tenth of the replay's size, the device arrays
+    alive while it places each one below 1.2 replays (it held host copies of the whole
+    replay beside the file's arrays, and the empty replay beside the restored one: about three
+    replays of memory where a fresh run needs one), and the runner read back is the one saved."""
+    import tracemalloc
+
+    import roverswarm.storage as storage
+    from roverswarm.config import validate_training
+
+    config = with_options(tiny_config, {"episodes": 20_000, "buffer_size": 500_000})  # 61 MB of replay
+    params = validate_training(config)
+    family = FAMILIES[config.learner.algo]
+    program = family.configure(config, params)
+    pattern = (jnp.arange(300) % 7 + 1).reshape(1, 300)  # 300 transitions of every seed, none zero
+
+    def saved():
+        runner = family.init(program, params, config.seed)
+        data = jax.tree.map(
+            lambda x: x.at[:, :300].set(pattern.reshape(1, 300, *[1] * (x.ndim - 2)).astype(x.dtype)),
+            runner.buffer.data,
+        )
+        return runner.replace(buffer=runner.buffer.replace(data=data, size=jnp.full_like(runner.buffer.size, 300)))
+
+    storage.save_checkpoint(tmp_path / "checkpoint.npz", saved())
+    replay = sum(x.nbytes for x in jax.tree.leaves(family.init(program, params, config.seed).buffer))
+    alive, place = [], storage.placed
+    monkeypatch.setattr(
+        storage, "placed", lambda *a: alive.append(sum(x.nbytes for x in jax.live_arrays())) or place(*a)
+    )
+    before = sum(x.nbytes for x in jax.live_arrays())
+    tracemalloc.start()
+    try:
+        loaded = storage.load_checkpoint(
+            tmp_path / "checkpoint.npz",
+            family.init(program, params, config.seed),
+            family.replay_buffer(program, params),
+        )
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert replay > 5 * 10**7 and peak < replay / 10, (peak, replay)
+    placed = len(jax.tree.leaves(loaded.buffer))  # every array of the replay was placed, one at a time
+    assert len(alive) == placed and max(alive) - before < 1.2 * replay, (alive, before, replay)
+    for got, want in zip(jax.tree.leaves(loaded), jax.tree.leaves(saved())):
+        np.testing.assert_array_equal(got, want)
+
+
 def test_ranked_replay_is_deterministic_and_resumes_exactly(tiny_config, tmp_path, signal_at_chunk):
     """Same seed => same numbers with the experience sample optimizer, also across a Ctrl-C
     (checkpoint of losses and sampling table) and a resume; here in Schaul's 1/rank reading,

@@ -6,6 +6,9 @@ from __future__ import annotations
 import errno
 import os
 import zipfile
+from collections import ChainMap
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Callable
 
@@ -19,16 +22,21 @@ from roverswarm.config import RESUME_CHANGES, TrainConfig, config_from_json, fie
 from roverswarm.errors import UserError, require
 
 
-def flatten(tree: dict, prefix: str = "") -> dict[str, np.ndarray]:
-    """The leaves of nested dicts ``tree`` by their slash-joined paths (Nones left out)."""
+def leaves(tree: dict, prefix: str = "") -> dict:
+    """The leaves of nested dicts ``tree``, as they are, by their slash-joined paths (Nones left out)."""
     flat = {}
     for key, value in tree.items():
         path = f"{prefix}{key}"
         if isinstance(value, dict):
-            flat.update(flatten(value, path + "/"))
+            flat.update(leaves(value, path + "/"))
         elif value is not None:
-            flat[path] = np.asarray(value)
+            flat[path] = value
     return flat
+
+
+def flatten(tree: dict, prefix: str = "") -> dict[str, np.ndarray]:
+    """:func:`leaves` as NumPy arrays."""
+    return {path: np.asarray(value) for path, value in leaves(tree, prefix).items()}
 
 
 STARTS_AS = {"target_approx": "approx"}
@@ -160,14 +168,56 @@ def atomic_write_files(contents: dict[Path, str | bytes]) -> None:
         os.replace(tmp, path)
 
 
+def _unreadable(path: Path, error: Exception) -> UserError:
+    return UserError(f"'{path}' cannot be read ({error}); it is truncated or not a roverswarm checkpoint")
+
+
+UNREADABLE = (OSError, ValueError, EOFError, zipfile.BadZipFile)
+"""What numpy raises reading a truncated file or one that is not an ``.npz``."""
+
+
+class _Arrays(Mapping):
+    """The arrays of an open checkpoint by name, each read from the file when asked for: a
+    resume holds one of the saved arrays in host memory at a time, not the whole file."""
+
+    def __init__(self, data, path: Path):
+        self.data, self.path = data, path
+
+    def __contains__(self, key) -> bool:  # by name: Mapping's would read the array
+        return key in self.data.files
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        if key not in self:
+            raise KeyError(key)
+        try:
+            return self.data[key]
+        except UNREADABLE as error:
+            raise _unreadable(self.path, error) from error
+
+    def __iter__(self):
+        return iter(self.data.files)
+
+    def __len__(self) -> int:
+        return len(self.data.files)
+
+
+@contextmanager
+def open_arrays(path: Path) -> Iterator[Mapping[str, np.ndarray]]:
+    """The arrays of checkpoint ``path`` (:class:`_Arrays`) while the file is open;
+    :class:`UserError` if it is truncated or not a checkpoint."""
+    try:
+        data = np.load(path, allow_pickle=False)
+    except UNREADABLE as error:
+        raise _unreadable(path, error) from error
+    with data:
+        yield _Arrays(data, path)
+
+
 def read_arrays(path: Path, prefix: str = "") -> dict[str, np.ndarray]:
     """The arrays of checkpoint ``path`` whose names start with ``prefix``; :class:`UserError`
     if the file is truncated or not a checkpoint."""
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            return {k: data[k] for k in data.files if k.startswith(prefix)}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
-        raise UserError(f"'{path}' cannot be read ({error}); it is truncated or not a roverswarm checkpoint") from error
+    with open_arrays(path) as arrays:
+        return {k: arrays[k] for k in arrays if k.startswith(prefix)}
 
 
 def trained_episodes(path: Path) -> int:
@@ -181,25 +231,32 @@ def load_checkpoint(path: Path, template, buffer=None):
     A finished run's checkpoint keeps no replay: ``template``'s empty one is kept. A replay
     of another capacity (a run whose ``--episodes`` changed: docs/training.md#extending-a-run)
     is :func:`~roverswarm.buffers.base.placed` into ``template``'s and made whole by
-    ``buffer`` (its :class:`~roverswarm.buffers.base.Buffer`)."""
-    flat = read_arrays(path)
-    if template.buffer is None:
-        return restore(template, flat)
-    empty = flatten(serialization.to_state_dict(template.buffer), "buffer/")
-    if not any(k.startswith("buffer/") for k in flat):  # a finished run's checkpoint: no replay kept
-        return restore(template, {**flat, **empty})
-    capacity = jax.tree.leaves(template.buffer.data)[0].shape[1]
-    resized = False
-    for key, x in flat.items():
-        if key.startswith("buffer/data/"):  # kept up to the filled part
-            require(
-                x.shape[1] <= capacity,
-                f"--buffer-size: this run's replay already holds {x.shape[1]} transitions per seed and the "
-                f"config gives room for {capacity}; resume with --buffer-size >= {x.shape[1]}",
-            )
-        elif key in empty and x.shape != empty[key].shape:
-            resized = True
-        if key in empty:
-            flat[key] = placed(x, empty[key])
-    runner = restore(template, flat)
+    ``buffer`` (its :class:`~roverswarm.buffers.base.Buffer`).
+
+    The arrays are read one at a time, each on the device before the next is read, and each
+    of ``template``'s replay arrays is let go once its place is filled: given a template no one
+    else holds (``load_checkpoint(path, init(...))``), a resume holds about one replay, not
+    the empty one, the restored one and host copies of both."""
+    with open_arrays(path) as flat:
+        if template.buffer is None:
+            return restore(template, flat)
+        empty = leaves(serialization.to_state_dict(template.buffer), "buffer/")
+        capacity = jax.tree.leaves(template.buffer.data)[0].shape[1]
+        template = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), template)  # shapes alone
+        if not any(k.startswith("buffer/") for k in flat):  # a finished run's checkpoint: no replay kept
+            return restore(template, ChainMap(empty, flat))
+        resized, replay = False, {}
+        for key in [k for k in flat if k.startswith("buffer/")]:
+            x = flat[key]
+            if key.startswith("buffer/data/"):  # kept up to the filled part
+                require(
+                    x.shape[1] <= capacity,
+                    f"--buffer-size: this run's replay already holds {x.shape[1]} transitions per seed and the "
+                    f"config gives room for {capacity}; resume with --buffer-size >= {x.shape[1]}",
+                )
+            elif key in empty and x.shape != empty[key].shape:
+                resized = True
+            if key in empty:
+                replay[key] = placed(x, empty.pop(key))
+        runner = restore(template, ChainMap(replay, flat))
     return runner.replace(buffer=jax.vmap(buffer.resized)(runner.buffer)) if resized else runner

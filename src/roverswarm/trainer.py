@@ -260,11 +260,15 @@ def _train(
     if out is not None and resume:
         done, rows = _check_resumable(config, out)
     program = family.configure(config, params)
-    runner = family.init(program, params, config.seed)
     total = jnp.int32(config.episodes)  # data, not part of the compiled program
+    if out is not None and resume:  # the fresh runner held by nothing else: its empty replay is let go
+        runner = load_checkpoint(
+            out / CHECKPOINT, family.init(program, params, config.seed), family.replay_buffer(program, params)
+        )
+    else:
+        runner = family.init(program, params, config.seed)
     if out is not None:
         if resume:
-            runner = load_checkpoint(out / CHECKPOINT, runner, family.replay_buffer(program, params))
             require(
                 len(rows) == done // config.log_every * config.seeds,
                 f"--resume: '{out / METRICS}' is missing or lacks rows of the {done} episodes in the checkpoint; "

@@ -112,10 +112,10 @@ def empty_state(capacity: int, example: Transition, num_policies: int, extra: An
     return BufferState(data=data, position=counter(), size=counter(), extra=extra, partitions=parts)
 
 
-def placed(saved: np.ndarray, empty: np.ndarray) -> np.ndarray:
+def placed(saved: np.ndarray, empty: jax.Array) -> jax.Array:
     """An array of a replay of another capacity in the shape of the same array of an empty
-    replay (``empty``): the part of ``saved`` that fits, at the start of every axis, and
-    ``empty``'s values beyond it.
+    replay (``empty``, on the device): the part of ``saved`` that fits, at the start of every
+    axis, and ``empty``'s values beyond it, made on the device (no host copy of the whole).
 
     Exact for a replay whose ring has not wrapped (its transitions in slots 0 .. size - 1,
     every array beyond them as an empty replay holds it) and that fits: the state a replay
@@ -123,11 +123,9 @@ def placed(saved: np.ndarray, empty: np.ndarray) -> np.ndarray:
     :attr:`Buffer.resized` recomputes. (A replay of ``C`` transitions capped at a run's own,
     whose run is extended, has never wrapped: see ``docs/training.md``.)"""
     if saved.shape == empty.shape:
-        return saved
+        return jnp.asarray(saved)
     common = tuple(slice(0, min(a, b)) for a, b in zip(saved.shape, empty.shape))
-    out = np.array(empty, copy=True)
-    out[common] = saved[common]
-    return out
+    return jax.lax.dynamic_update_slice(empty, jnp.asarray(saved[common], empty.dtype), (0,) * empty.ndim)
 
 
 def write(state: BufferState, transitions: Transition) -> tuple[BufferState, jax.Array]:
