@@ -186,9 +186,7 @@ class _Arrays(Mapping):
     def __contains__(self, key) -> bool:  # by name: Mapping's would read the array
         return key in self.data.files
 
-    def __getitem__(self, key: str) -> np.ndarray:
-        if key not in self:
-            raise KeyError(key)
+    def __getitem__(self, key: str) -> np.ndarray:  # a name not in the file: numpy's KeyError
         try:
             return self.data[key]
         except UNREADABLE as error:

@@ -257,16 +257,16 @@ def _train(
 ) -> Result:
     family = learner_family(config.learner.algo)
     rows: list[dict[str, float]] = []
+    program = family.configure(config, params)
     if out is not None and resume:
         done, rows = _check_resumable(config, out)
-    program = family.configure(config, params)
-    total = jnp.int32(config.episodes)  # data, not part of the compiled program
-    if out is not None and resume:  # the fresh runner held by nothing else: its empty replay is let go
+        # the fresh runner held by nothing else: its empty replay is let go as the saved one is placed
         runner = load_checkpoint(
             out / CHECKPOINT, family.init(program, params, config.seed), family.replay_buffer(program, params)
         )
     else:
         runner = family.init(program, params, config.seed)
+    total = jnp.int32(config.episodes)  # data, not part of the compiled program
     if out is not None:
         if resume:
             require(
