@@ -69,6 +69,18 @@ def episode(state, actions, params):
     return jax.lax.scan(body, state, actions)[1]
 
 
+@jax.jit
+def _start(key, params):
+    """Layout of ``params`` from ``key``, random actions, and both placed in :data:`MAX` slots,
+    where rovers that do not exist get wild actions (they must still stand still and change
+    nothing). Jitted: one program per size instead of hundreds of operations run one by one."""
+    n = params.num_rovers
+    _, state = reset(key, params)
+    actions = jax.random.uniform(jax.random.fold_in(key, 1), (STEPS, n, 2), minval=-1, maxval=1)
+    big_actions = jnp.concatenate([actions, 5 * jnp.ones((STEPS, MAX - n, 2))], axis=1)
+    return state, actions, pad(state, MAX, jax.random.fold_in(key, 2)), big_actions
+
+
 @pytest.mark.parametrize("nearest_first", [False, True])
 def test_padded_layout_steps_as_the_unpadded_environment_for_every_n(nearest_first):
     """For N = 2..10, the padded environment (maximum 10) with N active rovers, POIs and traps,
@@ -79,12 +91,9 @@ def test_padded_layout_steps_as_the_unpadded_environment_for_every_n(nearest_fir
     for n in range(2, MAX + 1):
         params = get_scenario(f"paper-{n}").replace(nearest_first=nearest_first)
         key = jax.random.PRNGKey(n)
-        _, state = reset(key, params)
-        actions = jax.random.uniform(jax.random.fold_in(key, 1), (STEPS, n, 2), minval=-1, maxval=1)
-        # rovers that do not exist get wild actions: they must still stand still and change nothing
-        big_actions = jnp.concatenate([actions, 5 * jnp.ones((STEPS, MAX - n, 2))], axis=1)
+        state, actions, padded_state, big_actions = _start(key, params)
         ref = jax.jit(episode, static_argnums=2)(state, actions, params)
-        got = run_padded(pad(state, MAX, jax.random.fold_in(key, 2)), big_actions, n)
+        got = run_padded(padded_state, big_actions, n)
         obs = np.asarray(got[0])
         np.testing.assert_allclose(active_part(obs[:, :n], n, MAX), ref[0], atol=1e-6, err_msg=f"observations, N = {n}")
         assert observation_size(params) == active_part(obs, n, MAX).shape[-1]

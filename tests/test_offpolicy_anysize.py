@@ -28,6 +28,9 @@ from roverswarm.evaluate import evaluate_run
 from roverswarm.learners import offpolicy
 from roverswarm.presets import PRESETS
 
+_update = jax.jit(update, static_argnums=0)
+"""The update as training runs it (jitted): one program, not hundreds of operations run one by one."""
+
 K = 1  # --entity-nearest
 NEAREST = {"network": "nearest", "entity_nearest": K, "share_parameters": True, "critic_neighbors": 1}
 
@@ -45,7 +48,7 @@ def test_the_replay_rebuilds_mixed_sizes_and_failures(tiny_config):
     buffer = make_buffer(program.buffer, params.num_rovers, 1)
     envs = program.num_envs
     empty = compact.init(buffer, params, envs, observed=True, padded=True, failures=True)
-    state = compact.add(buffer, empty, collected)
+    state = jax.jit(partial(compact.add, buffer))(empty, collected)
     steps = params.max_steps
     expand = partial(compact.expand, params=params, num_envs=envs, view=offpolicy.vector_view(program.learner))
     batch = jax.jit(expand)(state, jnp.arange(steps * envs))
@@ -147,8 +150,8 @@ def test_an_update_on_padded_slots_is_the_update_without_them(algo):
     padded = padded.replace(obs=empty(padded.obs), next_obs=empty(padded.next_obs))
     alone = jax.tree.map(lambda x: x[:n, :, :n] if x.ndim > 2 else x[:n], padded.replace(rovers=None))
     state = init_learner(jax.random.PRNGKey(0), config, n, width)
-    new_padded, info_padded = update(config, state, padded)
-    new_alone, info_alone = update(config, state, alone)
+    new_padded, info_padded = _update(config, state, padded)
+    new_alone, info_alone = _update(config, state, alone)
     for got, want in zip(jax.tree.leaves(new_padded), jax.tree.leaves(new_alone)):
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(info_padded["td_loss"][:n], info_alone["td_loss"], rtol=1e-5)
@@ -180,7 +183,7 @@ def test_what_absent_rovers_carry_changes_no_update_of_mixed_sizes(algo):
     )
     assert not np.array_equal(first.actions, other.actions)
     state = init_learner(jax.random.PRNGKey(0), config, slots, width)
-    (new_first, info_first), (new_other, info_other) = (update(config, state, b) for b in (first, other))
+    (new_first, info_first), (new_other, info_other) = (_update(config, state, b) for b in (first, other))
     for got, want in zip(jax.tree.leaves(new_first), jax.tree.leaves(new_other)):
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
     own = np.asarray(rovers[np.arange(slots), :, np.arange(slots)])  # [N, B]: agent i's rover in its sample
@@ -215,8 +218,8 @@ def test_one_batch_computes_the_shared_targets_once():
     batch = jax.tree.map(lambda x: jnp.broadcast_to(x, (4, *x.shape[1:])), one)
     state = init_learner(jax.random.PRNGKey(0), plain, 4, 7)
     key = jax.random.PRNGKey(3)
-    once, _ = update(dataclasses.replace(plain, one_batch=True), state, batch, key=key)
-    every, _ = update(plain, state, batch, key=key)
+    once, _ = _update(dataclasses.replace(plain, one_batch=True), state, batch, key=key)
+    every, _ = _update(plain, state, batch, key=key)
     for got, want in zip(jax.tree.leaves(once), jax.tree.leaves(every)):
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
 

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy import stats
 
-from roverswarm.buffers.base import Transition, importance_weights
+from roverswarm.buffers.base import Buffer, Transition, importance_weights
 from roverswarm.buffers.ranked import _running_sums, ranked_buffer
 from roverswarm.buffers.uniform import uniform_buffer
 
@@ -36,6 +38,13 @@ def reference_probabilities(losses: np.ndarray, alpha: float, beta: float, readi
     return (1.0 - beta) * powered / powered.sum() + beta / len(losses)
 
 
+def jitted(buffer: Buffer) -> Buffer:
+    """``buffer`` with its functions jitted, as training runs them: one program each instead of
+    hundreds of operations run (and prepared) one by one."""
+    names = ("init", "add", "draw", "set_priorities", "refresh")
+    return dataclasses.replace(buffer, **{name: jax.jit(getattr(buffer, name)) for name in names})
+
+
 def transitions(first: int, count: int, policy: np.ndarray | None = None) -> Transition:
     """``count`` transitions whose observations hold their number ``first``, ``first + 1``, ...;
     with ``policy`` [count, N], the sub-policy each agent ran (policy ensembles)."""
@@ -52,7 +61,7 @@ def transitions(first: int, count: int, policy: np.ndarray | None = None) -> Tra
 
 def filled(capacity: int, batch_size: int, stored: int, alpha: float, beta: float, reading: str = "paper"):
     """A ranked buffer of ``capacity`` holding ``stored`` transitions (slot i holds number i)."""
-    buffer = ranked_buffer(capacity, batch_size, N, alpha, beta, reading=reading)
+    buffer = jitted(ranked_buffer(capacity, batch_size, N, alpha, beta, reading=reading))
     example = jax.tree.map(lambda x: x[0], transitions(0, 1))
     return buffer, buffer.add(buffer.init(example), transitions(0, stored))
 
@@ -102,7 +111,7 @@ def test_sampling_follows_eq_12_13(alpha, beta):
     rng = np.random.default_rng(0)
     buffer, state = filled(capacity=128, batch_size=256, stored=100, alpha=alpha, beta=beta)
     losses = distinct_losses(rng, 100)
-    expected = np.stack([reference_probabilities(l, alpha, beta) for l in losses])
+    expected = np.stack([reference_probabilities(row, alpha, beta) for row in losses])
     assert_matches(*draw(buffer, with_losses(buffer, state, losses)), expected)
     if alpha == 0.0 or beta == 1.0:
         np.testing.assert_allclose(expected, 1.0 / 100)
@@ -114,7 +123,7 @@ def test_schaul_sampling_follows_one_over_rank(alpha, beta):
     rng = np.random.default_rng(10)
     buffer, state = filled(capacity=128, batch_size=256, stored=100, alpha=alpha, beta=beta, reading="schaul")
     losses = distinct_losses(rng, 100)
-    expected = np.stack([reference_probabilities(l, alpha, beta, "schaul") for l in losses])
+    expected = np.stack([reference_probabilities(row, alpha, beta, "schaul") for row in losses])
     assert_matches(*draw(buffer, with_losses(buffer, state, losses)), expected)
     if alpha > 0:  # the largest loss is the most likely draw, far above the average
         assert all(expected[a].argmax() == losses[a].argmax() for a in range(N))
@@ -133,9 +142,10 @@ def test_equal_losses_and_new_transitions_in_each_reading(reading):
     losses = np.stack([rng.choice([0.5, 2.0, 8.0, 30.0], size=70) for _ in range(N)])
     state = buffer.add(with_losses(buffer, state, losses), transitions(70, 30))
     now = np.concatenate([losses, np.full((N, 30), np.inf)], axis=1)
-    before = np.stack([reference_probabilities(l, 0.7, 0.1, reading) for l in now])
+    before = np.stack([reference_probabilities(row, 0.7, 0.1, reading) for row in now])
     assert_matches(*draw(buffer, state), before)
-    after = np.stack([reference_probabilities(l, 0.7, 0.1, "paper" if reading == "paper" else "rerank") for l in now])
+    refreshed = "paper" if reading == "paper" else "rerank"
+    after = np.stack([reference_probabilities(row, 0.7, 0.1, refreshed) for row in now])
     assert_matches(*draw(buffer, buffer.refresh(state, jnp.bool_(True))), after)  # +inf losses ranked too
     np.testing.assert_allclose(before[:, 70:].sum(-1), after[:, 70:].sum(-1), atol=0.15)
 
@@ -144,7 +154,7 @@ def test_equal_losses_share_their_average_rank():
     rng = np.random.default_rng(1)
     buffer, state = filled(capacity=64, batch_size=256, stored=60, alpha=2.0, beta=0.1)
     losses = np.stack([rng.choice([0.5, 2.0, 8.0, 30.0], size=60) for _ in range(N)])
-    expected = np.stack([reference_probabilities(l, 2.0, 0.1) for l in losses])
+    expected = np.stack([reference_probabilities(row, 2.0, 0.1) for row in losses])
     assert_matches(*draw(buffer, with_losses(buffer, state, losses)), expected)
 
 
@@ -154,7 +164,7 @@ def test_many_blocks_partly_filled():
     rng = np.random.default_rng(2)
     buffer, state = filled(capacity=3000, batch_size=1024, stored=2500, alpha=1.0, beta=0.2)
     losses = distinct_losses(rng, 2500)
-    expected = np.stack([reference_probabilities(l, 1.0, 0.2) for l in losses])
+    expected = np.stack([reference_probabilities(row, 1.0, 0.2) for row in losses])
     assert_matches(*draw(buffer, with_losses(buffer, state, losses)), expected)
 
 
@@ -176,7 +186,7 @@ def test_new_transitions_enter_at_the_top():
     state = with_losses(buffer, state, losses)
     state = buffer.add(state, transitions(80, 20))
     now = np.concatenate([losses, np.full((N, 20), np.inf)], axis=1)
-    expected = np.stack([reference_probabilities(l, 2.0, 0.1) for l in now])
+    expected = np.stack([reference_probabilities(row, 2.0, 0.1) for row in now])
     assert_matches(*draw(buffer, state), expected)
 
 
@@ -197,7 +207,7 @@ def test_a_written_back_huge_loss_is_drawn_far_more_often_after_the_re_ranking()
     uniform = 1 / 50
     assert share(before) < 0.5 * uniform and share(after) > 3 * uniform
     losses[:, hot] = 1e36
-    assert_matches(after, probabilities, np.stack([reference_probabilities(l, 3.0, 0.1) for l in losses]))
+    assert_matches(after, probabilities, np.stack([reference_probabilities(row, 3.0, 0.1) for row in losses]))
 
 
 def test_importance_weights_match_their_definition():
@@ -229,7 +239,7 @@ def test_importance_weights_with_an_exponent_match_their_definition():
 
 
 def test_the_uniform_buffer_weighs_every_sample_equally():
-    buffer = uniform_buffer(64, 32, N)
+    buffer = jitted(uniform_buffer(64, 32, N))
     state = buffer.add(buffer.init(jax.tree.map(lambda x: x[0], transitions(0, 1))), transitions(0, 40))
     sample = buffer.sample(state, jax.random.PRNGKey(0))
     np.testing.assert_allclose(sample.probabilities, 1 / 40)
@@ -245,7 +255,7 @@ def test_a_steep_alpha_on_a_nearly_empty_buffer_stays_finite():
     state = buffer.add(with_losses(buffer, state, losses), transitions(50, 10))
     indices, probabilities = draw(buffer, state)
     now = np.concatenate([losses, np.full((N, 10), np.inf)], axis=1)
-    expected = np.stack([reference_probabilities(l, 60.0, 0.0) for l in now])
+    expected = np.stack([reference_probabilities(row, 60.0, 0.0) for row in now])
     assert indices.max() < 60 and np.all(np.isfinite(probabilities)) and np.all(probabilities > 0)
     for agent in range(N):  # the ten fresh transitions tie at the top and take almost everything
         assert np.mean(indices[:, agent] >= 50) == pytest.approx(expected[agent, 50:].sum(), abs=0.01)
