@@ -61,8 +61,9 @@ def test_mixed_sizes_mask_the_rovers_that_do_not_exist(tiny_anysize):
     # --balance-sizes: each rover's weight is (largest size) / (its swarm's size), so that every
     # live step of every episode weighs the same in the loss, whatever its size
     live = np.asarray(traj.mask)[..., None] * exists  # [T, E, N]
+    batch = jax.jit(make_batch, static_argnums=0)
     made = {
-        balance: make_batch(
+        balance: batch(
             dataclasses.replace(config, ppo=dataclasses.replace(config.ppo, balance_sizes=balance)), state, traj
         )
         for balance in (False, True)
@@ -185,9 +186,10 @@ def test_the_entity_policy_is_permutation_equivariant(anysize_run):
     """Renumbering the rovers renumbers their actions; reordering POIs and traps changes nothing."""
     policy = Run(anysize_run).policy(1)
     params = get_scenario("paper-6")
-    _, state = reset(jax.random.PRNGKey(4), params)
+    _, state = jax.jit(reset)(jax.random.PRNGKey(4), params)
     state = state.replace(rover_vel=jax.random.normal(jax.random.PRNGKey(5), (6, 2)))
-    act = lambda s: np.asarray(policy.act(None, None, s, None, policy.weights, params))  # noqa: E731
+    acting = jax.jit(lambda s, weights: policy.act(None, None, s, None, weights, params))
+    act = lambda s: np.asarray(acting(s, policy.weights))  # noqa: E731
     rovers, pois, traps = (np.random.default_rng(i).permutation(6) for i in range(3))
     shuffled = state.replace(
         rover_pos=state.rover_pos[rovers],

@@ -77,11 +77,16 @@ def _shield_reference(state, actions, params) -> tuple[np.ndarray, np.ndarray]:
     return out, near
 
 
+shield_all = jax.jit(jax.vmap(shield, in_axes=(0, 0, None)))
+"""The shield over a batch of layouts [B, ...], jitted (run op by op, its unrolled loop is
+hundreds of operations each prepared on its own)."""
+
+
 def _moving_states(params, count: int, seed: int):
     """``count`` fresh layouts of ``params`` with the rovers already moving (so that some are
     headed for a trap or one another), and random actions [count, N, 2] beyond [-1, 1] at times."""
     keys = jax.random.split(jax.random.PRNGKey(seed), 3)
-    states = jax.vmap(lambda k: reset(k, params)[1])(jax.random.split(keys[0], count))
+    states = jax.jit(jax.vmap(lambda k: reset(k, params)[1]))(jax.random.split(keys[0], count))
     vel = jax.random.uniform(keys[1], states.rover_vel.shape, minval=-0.6, maxval=0.6)
     actions = jax.random.uniform(keys[2], (count, params.num_rovers, ACTION_SIZE), minval=-1.3, maxval=1.3)
     failed = states.fail_step.at[::3, 0].set(0)  # rover 0 of every third layout failed: it stays put
@@ -95,7 +100,7 @@ def test_the_shield_is_its_rule_rover_by_rover(layout):
     within 1e-4 of a threshold of the rule are left out (float32 against float64)."""
     params = get_scenario("paper-5") if layout == "paper-5" else sized(padded_scenario("paper-2..6"), 4)
     states, actions = _moving_states(params, 64, seed=1)
-    got = np.asarray(jax.vmap(shield, in_axes=(0, 0, None))(states, actions, params))
+    got = np.asarray(shield_all(states, actions, params))
     turned = compared = 0
     for e in range(64):
         state = jax.tree.map(lambda x: x[e], states)
@@ -114,7 +119,7 @@ def test_a_clear_way_passes_the_action_unchanged_and_empty_slots_change_nothing(
     states, actions = _moving_states(params, 32, seed=2)
     spread = jnp.array([[-50.0, 0.0], [0.0, 0.0], [50.0, 0.0]])
     clear = states.replace(rover_pos=jnp.broadcast_to(spread, states.rover_pos.shape), trap_pos=states.trap_pos + 100.0)
-    got = jax.vmap(shield, in_axes=(0, 0, None))(clear, actions, params)
+    got = shield_all(clear, actions, params)
     np.testing.assert_array_equal(got, jnp.clip(actions, -1.0, 1.0))
 
     padded = sized(padded_scenario("paper-2..6"), 3)
@@ -123,10 +128,11 @@ def test_a_clear_way_passes_the_action_unchanged_and_empty_slots_change_nothing(
     crowded = states.replace(
         rover_pos=states.rover_pos.at[:, 3:6].set(ahead), trap_pos=states.trap_pos.at[:, 3:6].set(ahead)
     )
-    on = jax.vmap(shield, in_axes=(0, 0, None))
-    np.testing.assert_array_equal(on(states, actions, padded)[:, :3], on(crowded, actions, padded)[:, :3])
+    np.testing.assert_array_equal(
+        shield_all(states, actions, padded)[:, :3], shield_all(crowded, actions, padded)[:, :3]
+    )
     every = lambda s: s.replace(rover_mask=jnp.ones_like(s.rover_mask), trap_mask=jnp.ones_like(s.trap_mask))  # noqa: E731
-    turned = on(every(crowded), actions, padded)[:, :3] != on(every(states), actions, padded)[:, :3]
+    turned = shield_all(every(crowded), actions, padded)[:, :3] != shield_all(every(states), actions, padded)[:, :3]
     assert np.asarray(turned).any(axis=-1).mean() > 0.3  # were they there, they would turn the rovers
 
 

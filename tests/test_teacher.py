@@ -63,8 +63,8 @@ def test_greedy_plan_matches_every_real_rover_to_its_own_real_poi(tiny_teacher):
     real POI of its own, the empty slots none."""
     params = validate(tiny_teacher)
     config = configure(tiny_teacher, params)
-    states = reset_all(config, params, jax.random.PRNGKey(1), jnp.asarray(10**6))
-    plans = jax.vmap(greedy_plan, in_axes=(0, None))(states, params)
+    states = jax.jit(reset_all, static_argnums=0)(config, params, jax.random.PRNGKey(1), jnp.asarray(10**6))
+    plans = jax.jit(jax.vmap(greedy_plan, in_axes=(0, None)))(states, params)
     for poi, rovers, pois in zip(np.asarray(plans.poi), np.asarray(states.rover_mask), np.asarray(states.poi_mask)):
         real = poi[rovers]
         assert sorted(real.tolist()) == np.flatnonzero(pois).tolist()

@@ -684,6 +684,15 @@ def test_a_truncated_checkpoint_is_one_line_and_exit_2(unbroken, tmp_path, capsy
         assert "cannot be read" in err and "truncated" in err and err.count("\n") == 1, err
 
 
+def test_a_missing_checkpoint_says_so(tmp_path):
+    """Reading a checkpoint that is not there (the Python API: the CLI checks the run folder
+    first) names the file and says it does not exist, not that it is truncated."""
+    from roverswarm.storage import trained_episodes
+
+    with pytest.raises(UserError, match=r"^no checkpoint at '.*nowhere\.npz': the file does not exist$"):
+        trained_episodes(tmp_path / "nowhere.npz")
+
+
 @pytest.mark.parametrize("algo", ["maddpg", "mappo"])
 @pytest.mark.parametrize(
     "shaping, penalty, contacts, big",
@@ -710,10 +719,10 @@ def test_contact_shaping_trains_on_a_heavier_penalty_and_reports_the_environment
     sizes = (params.num_rovers, observation_size(params))
     if algo == "maddpg":
         learner = init_learner(jax.random.PRNGKey(0), config.learner, *sizes)
-        run = lambda c, p: offpolicy.collect(c, p, learner, jax.random.PRNGKey(1), 0.3)  # noqa: E731
+        run = jax.jit(lambda c, p: offpolicy.collect(c, p, learner, jax.random.PRNGKey(1), 0.3), static_argnums=0)
     else:
         actor = ppo.init_ppo(jax.random.PRNGKey(0), config, *sizes).actor
-        run = lambda c, p: onpolicy.collect(c, p, actor, jax.random.PRNGKey(1))  # noqa: E731
+        run = jax.jit(lambda c, p: onpolicy.collect(c, p, actor, jax.random.PRNGKey(1)), static_argnums=0)
     kept = lambda out: out[0].rewards  # noqa: E731  (the replay's or the trajectory's)
     plain, on_heavy, trained = run(config, params), run(config, heavy), run(shaped, params)
     assert float(plain[-1][contacts].sum()) > 10
@@ -777,19 +786,20 @@ def test_trap_margin_charges_the_shaping_on_a_ramp_from_the_margin_to_contact(ti
     plain = with_options(tiny_ppo_config, {"trap_shaping": k}).learner
     params = sized(padded_scenario("paper-2..5"), 3).replace(trap_radius=0.25)  # big craters: near and on them
     near = contact = 0
+    reset_jit, step_jit, shaped = jax.jit(reset), jax.jit(step_env), jax.jit(shaped_rewards, static_argnums=2)
     for seed in range(20):
-        _, state = reset(jax.random.PRNGKey(seed), params)
+        _, state = reset_jit(jax.random.PRNGKey(seed), params)
         offsets = jax.random.uniform(jax.random.PRNGKey(100 + seed), (params.num_rovers, 2), minval=-0.5, maxval=0.5)
         state = state.replace(rover_pos=state.trap_pos + offsets)  # rover i by trap i, on it or near it
         actions = jnp.zeros((params.num_rovers, 2))
-        _, after, rewards, _, _, info = step_env(state, actions, params)
+        _, after, rewards, _, _, info = step_jit(state, actions, params)
         pos, traps = np.asarray(after.rover_pos, np.float64), np.asarray(after.trap_pos, np.float64)
         gaps = np.linalg.norm(pos[:, None] - traps[None], axis=-1) - params.rover_radius - 0.25
         gaps[3:, :] = np.inf  # rovers 3 and 4 and traps 3 and 4 are not in this swarm of 3
         gaps[:, 3:] = np.inf
         charge = np.clip(1 - gaps / margin, 0, 1).sum(axis=1)
-        np.testing.assert_allclose(shaped_rewards(rewards, info, learner), rewards - k * charge, atol=1e-5)
-        np.testing.assert_allclose(shaped_rewards(rewards, info, plain), rewards - k * (gaps < 0).sum(1), atol=1e-5)
+        np.testing.assert_allclose(shaped(rewards, info, learner), rewards - k * charge, atol=1e-5)
+        np.testing.assert_allclose(shaped(rewards, info, plain), rewards - k * (gaps < 0).sum(1), atol=1e-5)
         np.testing.assert_array_equal(info["trap_contacts"], (gaps < 0).sum(axis=1))
         near += int(((gaps > 0) & (gaps < margin)).sum())
         contact += int((gaps < 0).sum())

@@ -169,11 +169,13 @@ def atomic_write_files(contents: dict[Path, str | bytes]) -> None:
 
 
 def _unreadable(path: Path, error: Exception) -> UserError:
+    if isinstance(error, FileNotFoundError):
+        return UserError(f"no checkpoint at '{path}': the file does not exist")
     return UserError(f"'{path}' cannot be read ({error}); it is truncated or not a roverswarm checkpoint")
 
 
-UNREADABLE = (OSError, ValueError, EOFError, zipfile.BadZipFile)
-"""What numpy raises reading a truncated file or one that is not an ``.npz``."""
+_UNREADABLE = (OSError, ValueError, EOFError, zipfile.BadZipFile)
+"""What numpy raises reading a missing file, a truncated one or one that is not an ``.npz``."""
 
 
 class _Arrays(Mapping):
@@ -189,7 +191,7 @@ class _Arrays(Mapping):
     def __getitem__(self, key: str) -> np.ndarray:  # a name not in the file: numpy's KeyError
         try:
             return self.data[key]
-        except UNREADABLE as error:
+        except _UNREADABLE as error:
             raise _unreadable(self.path, error) from error
 
     def __iter__(self):
@@ -202,10 +204,10 @@ class _Arrays(Mapping):
 @contextmanager
 def open_arrays(path: Path) -> Iterator[Mapping[str, np.ndarray]]:
     """The arrays of checkpoint ``path`` (:class:`_Arrays`) while the file is open;
-    :class:`UserError` if it is truncated or not a checkpoint."""
+    :class:`UserError` if it is missing, truncated or not a checkpoint."""
     try:
         data = np.load(path, allow_pickle=False)
-    except UNREADABLE as error:
+    except _UNREADABLE as error:
         raise _unreadable(path, error) from error
     with data:
         yield _Arrays(data, path)
