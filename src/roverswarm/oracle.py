@@ -24,7 +24,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
-from scipy.optimize import linear_sum_assignment
 
 from roverswarm.env.entities import hand_over, match_pois
 from roverswarm.env.mars import EnvParams, EnvState, failed_rovers, masks_of, pairwise_dist
@@ -40,6 +39,8 @@ def assign_pois(rover_pos: np.ndarray, poi_pos: np.ndarray) -> np.ndarray:
     Minimises the total rover-to-POI distance. Returns the POI index of each rover ``[N]``,
     -1 for a rover left without one (N > P).
     """
+    from scipy.optimize import linear_sum_assignment  # here: half a second that processes never planning skip
+
     assigned = np.full(len(rover_pos), -1, dtype=np.int32)
     if len(poi_pos):
         cost = np.linalg.norm(rover_pos[:, None, :] - poi_pos[None, :, :], axis=-1)

@@ -13,7 +13,6 @@ from pathlib import Path
 
 import jax
 import numpy as np
-from matplotlib.figure import Figure
 
 from roverswarm.env.mars import NEVER
 from roverswarm.env.missions import Mission, load_mission
@@ -90,6 +89,8 @@ def stress_rows(
 def _stress_png(curves: dict, rows: list[dict[str, object]], mission: Mission, failures: int, path: Path) -> None:
     """Success rate against when the (first) rover failed, as a fraction of the time the policy
     needs without failure, one line per policy, with its success without failure dashed."""
+    from matplotlib.figure import Figure  # here: half a second that every other command skips
+
     figure = Figure(figsize=(7, 5), dpi=100)
     ax = figure.add_subplot()
     edges = np.linspace(0.0, 1.0, 11)

@@ -13,9 +13,6 @@ from pathlib import Path
 
 import imageio.v3 as imageio
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
-from matplotlib.patches import Circle
 
 from roverswarm.env.mars import EnvParams, observe_radii, trap_radii
 from roverswarm.errors import UserError, require, unwritable
@@ -28,6 +25,10 @@ class FrameRenderer:
     """Draws one frame at a time on an off-screen figure of ``pixels`` x ``pixels``."""
 
     def __init__(self, params: EnvParams, pixels: int = 480):
+        # matplotlib here, not at the top: half a second that every command but a render skips
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
         self.params = params
         self.figure = Figure(figsize=(pixels / 80, pixels / 80), dpi=80)
         self.canvas = FigureCanvasAgg(self.figure)
@@ -45,6 +46,8 @@ class FrameRenderer:
         """RGB uint8 ``[H, W, 3]`` of the rovers at ``trail[-1]`` with their paths ``trail``
         ``[t + 1, N, 2]``, POIs ``[P, 2]`` (filled where ``observed`` [P]) and traps ``[T, 2]``;
         with ``exists`` (rovers [N], POIs [P], traps [T] bool: a padded layout), only those that exist."""
+        from matplotlib.patches import Circle
+
         p, ax = self.params, self.ax
         if exists is not None:
             rovers, pois, traps = exists

@@ -1,14 +1,18 @@
 """The statistics of Table I: intervals, paired and unpaired relative changes, pooled tests and
-Holm's correction (see :mod:`roverswarm.experiments.results` for how they are used)."""
+Holm's correction (see :mod:`roverswarm.experiments.results` for how they are used).
+
+``scipy.stats`` is imported where it is used: half a second that every process importing the
+experiments (each job of a grid or sweep, each CLI command) paid, most never comparing arms."""
 
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
 
 
 def mean_interval(x: np.ndarray) -> tuple[float, float]:
     """Mean and half-width of its 95% t-interval (nan with fewer than two samples)."""
+    from scipy import stats
+
     x = np.asarray(x, float)
     if len(x) < 2:
         return float(np.mean(x)), float("nan")
@@ -17,6 +21,8 @@ def mean_interval(x: np.ndarray) -> tuple[float, float]:
 
 def relative_change(treated: np.ndarray, control: np.ndarray) -> tuple[float, float, float, float]:
     """(% change of the means, 95% interval low, high, Welch p-value) of treated vs control."""
+    from scipy import stats
+
     treated, control = np.asarray(treated, float), np.asarray(control, float)
     scale = abs(control.mean()) / 100.0
     change = (treated.mean() - control.mean()) / scale
@@ -39,6 +45,8 @@ def relative_change(treated: np.ndarray, control: np.ndarray) -> tuple[float, fl
 def paired_change(treated: np.ndarray, control: np.ndarray) -> tuple[float, float, float, float]:
     """(% change of the means, 95% interval low, high, paired t-test p-value) of ``treated``
     against ``control``, matched element by element (the same seeds)."""
+    from scipy import stats
+
     treated, control = np.asarray(treated, float), np.asarray(control, float)
     change = 100.0 * (treated.mean() - control.mean()) / abs(control.mean())
     if len(treated) < 2:
@@ -54,6 +62,8 @@ def paired_p(differences: np.ndarray) -> float:
     """Two-sided one-sample t-test p-value of ``differences`` against 0. Differences without
     spread give 1 when all are 0 (the arms agree exactly) and 0 otherwise (the limit of the t-test),
     rather than the undefined 0/0."""
+    from scipy import stats
+
     differences = np.asarray(differences, float)
     if len(differences) < 2:
         return float("nan")
