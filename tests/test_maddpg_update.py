@@ -132,14 +132,15 @@ def nearest_rows(cfg, obs, actions, i, by_index=False):
     """Critic inputs [B, (1 + K) * (O + A)] of --critic-neighbors K, one transition at a time:
     agent i, then the K other rovers nearest to it (positions at entries 2-3 of each rover's
     observation; ties to the lower index), or with ``by_index`` the first K others by index."""
-    rows = []
-    for b, o in enumerate(np.asarray(obs)):  # the order from the positions; actions may be traced (actor loss)
+    orders = []
+    for o in np.asarray(obs):  # the order from the positions; actions may be traced (actor loss)
         others = [j for j in range(N) if j != i]
         if not by_index:
             others.sort(key=lambda j: (float(np.sum((o[j, 2:4] - o[i, 2:4]) ** 2)), j))
-        order = [i] + others[: cfg.critic_neighbors]
-        rows.append(jnp.concatenate([obs[b, jnp.array(order)].ravel(), actions[b, jnp.array(order)].ravel()]))
-    return jnp.stack(rows)
+        orders.append([i] + others[: cfg.critic_neighbors])
+    rows = np.arange(len(orders))[:, None]  # each transition's rovers in its order, gathered at once
+    chosen = lambda x: x[rows, np.array(orders)].reshape(len(orders), -1)  # noqa: E731
+    return jnp.concatenate([chosen(obs), chosen(actions)], axis=1)
 
 
 def q_values(cfg, params, obs, actions, i, global_order=False):
