@@ -39,7 +39,7 @@ def assign_pois(rover_pos: np.ndarray, poi_pos: np.ndarray) -> np.ndarray:
     Minimises the total rover-to-POI distance. Returns the POI index of each rover ``[N]``,
     -1 for a rover left without one (N > P).
     """
-    from scipy.optimize import linear_sum_assignment  # here: half a second that processes never planning skip
+    from scipy.optimize import linear_sum_assignment  # here: half a second that processes without the oracle skip
 
     assigned = np.full(len(rover_pos), -1, dtype=np.int32)
     if len(poi_pos):
