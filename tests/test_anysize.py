@@ -546,13 +546,13 @@ def test_a_pois_claim_lead_matches_a_plain_loop():
 
 @pytest.mark.slow
 def test_one_policy_learns_two_sizes_and_beats_random_by_a_wide_margin(tmp_path):
-    """The anysize preset on paper-2..3 (its curriculum and annealing shortened), 2000 episodes:
+    """The anysize preset on paper-2..3 (its curriculum and annealing shortened), 1000 episodes:
     every seed beats random by a wide margin at both sizes, and at paper-4, which it never
-    trained on (0.91 / 0.91, 0.88 / 0.87, 0.79 / 0.80 when written; 3000 episodes: 0.82 at
-    worst, in 1.3 times the time)."""
-    preset = with_options(ANYSIZE, {"anneal_episodes": 2000})
+    trained on (0.74 / 0.75, 0.69 / 0.66, 0.61 / 0.61 when written; 2000 episodes: 0.79 at
+    worst, in 1.4 times the time on one core)."""
+    preset = with_options(ANYSIZE, {"anneal_episodes": 1000})
     config = dataclasses.replace(
-        preset, scenario="paper-2..3", episodes=2000, size_curriculum=1000, seeds=2, num_envs=40
+        preset, scenario="paper-2..3", episodes=1000, size_curriculum=500, seeds=2, num_envs=40
     )
     train(config, out=tmp_path, progress=False)
     rows = evaluate_run(tmp_path, episodes=300, scenario="paper-2,3,4")

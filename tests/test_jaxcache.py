@@ -3,6 +3,7 @@ limit of memory mappings per process. The on-disk cache keeps every program, the
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -68,3 +69,107 @@ def test_released_memory_goes_back_to_the_system():
     release_compiled_programs()
     assert freed - _resident_mb() > 192, f"resident {freed} MB before the release, {_resident_mb()} MB after"
     assert last.sum() == 8000
+
+
+@dataclasses.dataclass(frozen=True)
+class Scale:
+    """A static argument: a frozen dataclass, as the learner families' configs are."""
+
+    factor: float
+
+
+TRACED: list[Scale] = []
+"""Every trace of :func:`scaled_sum` (by its static argument)."""
+
+
+def scaled_sum(scale: Scale, tree: dict, bias: jax.Array):
+    TRACED.append(scale)
+    total = jnp.sin(tree["x"]).sum() * scale.factor + bias
+    return {"total": total, "pair": (tree["x"] * 2, None), "y": tree["y"] + 1}
+
+
+STORED = jaxcache.stored_jit(scaled_sum, static_argnums=(0,), donate_argnums=(1,))
+
+
+def _args():
+    return {"x": jnp.linspace(0.0, 3.0, 7), "y": jnp.arange(4)}, jnp.float32(0.5)
+
+
+@pytest.fixture
+def store(tmp_path, monkeypatch):
+    """The store in a folder of this test's own, empty, and no program of :data:`STORED` in memory."""
+    monkeypatch.setattr(jaxcache, "_store_dir", lambda: tmp_path)
+    STORED._programs.clear()
+    TRACED.clear()
+    yield tmp_path
+    STORED._programs.clear()
+
+
+def _equal(a, b) -> bool:
+    return jax.tree.structure(a) == jax.tree.structure(b) and all(
+        np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b))
+    )
+
+
+def test_a_stored_program_gives_jax_jits_numbers_and_a_new_process_reads_it_without_tracing(store):
+    """The result of ``jax.jit`` (its tree, its bits); donated arguments are consumed as jit
+    consumes them; after the programs in memory are released (as in a new process) the
+    function is not traced again, and another static argument is traced and stored apart."""
+    expected = jax.jit(scaled_sum, static_argnums=(0,))(Scale(1.5), *_args())
+    TRACED.clear()
+    tree, bias = _args()
+    assert _equal(STORED(Scale(1.5), tree, bias), expected)
+    assert tree["x"].is_deleted() and not bias.is_deleted()
+    assert TRACED == [Scale(1.5)] and len(list(store.iterdir())) == 1
+    release_compiled_programs()
+    assert _equal(STORED(Scale(1.5), *_args()), expected) and TRACED == [Scale(1.5)]
+    STORED(Scale(2.0), *_args())
+    assert TRACED == [Scale(1.5), Scale(2.0)] and len(list(store.iterdir())) == 2
+
+
+def test_a_program_of_other_source_or_an_unreadable_one_is_traced_again(store, monkeypatch):
+    expected = STORED(Scale(1.5), *_args())
+    (path,) = store.iterdir()
+    path.write_bytes(path.read_bytes()[:100])  # cut short
+    STORED._programs.clear()
+    assert _equal(STORED(Scale(1.5), *_args()), expected) and len(TRACED) == 2
+    assert path.stat().st_size > 100  # written again, whole
+    monkeypatch.setattr(jaxcache, "_fingerprint", lambda: "another version of the package")
+    STORED._programs.clear()
+    assert _equal(STORED(Scale(1.5), *_args()), expected) and len(TRACED) == 3
+    assert len(list(store.iterdir())) == 2
+
+
+HOST_CALLS: list[int] = []
+
+
+def doubled_on_the_host(x: jax.Array) -> jax.Array:
+    def double(v):
+        HOST_CALLS.append(v.size)
+        return v * 2
+
+    return jax.pure_callback(double, jax.ShapeDtypeStruct(x.shape, x.dtype), x)
+
+
+def test_what_cannot_be_stored_is_jitted_as_it_is(store, monkeypatch):
+    """A closure as the static argument (no name that is the same in every process), no store
+    (the compilation cache off), a host callback (JAX does not export it): the numbers of
+    ``jax.jit``, nothing written."""
+    stored = jaxcache.stored_jit(lambda f, x: f(x) + 1, static_argnums=(0,))
+    offset = 3.0
+    assert float(stored(lambda x: x * offset, jnp.float32(2.0))) == 7.0
+    HOST_CALLS.clear()
+    assert np.array_equal(jaxcache.stored_jit(doubled_on_the_host)(jnp.arange(3.0)), [0.0, 2.0, 4.0])
+    assert HOST_CALLS == [3]
+    monkeypatch.setattr(jaxcache, "_store_dir", lambda: None)
+    assert _equal(STORED(Scale(3.0), *_args()), jax.jit(scaled_sum, static_argnums=(0,))(Scale(3.0), *_args()))
+    assert list(store.iterdir()) == []
+
+
+def test_a_store_that_cannot_be_written_keeps_nothing_and_stops_nothing(store, monkeypatch):
+    """A store folder that cannot be made (here a file stands in its way; or a read-only or
+    full disk): the program runs, and nothing is left behind."""
+    (store / "taken").write_text("a file, not a folder")
+    monkeypatch.setattr(jaxcache, "_store_dir", lambda: store / "taken" / "exported")
+    assert _equal(STORED(Scale(1.5), *_args()), jax.jit(scaled_sum, static_argnums=(0,))(Scale(1.5), *_args()))
+    assert [p.name for p in store.iterdir()] == ["taken"]

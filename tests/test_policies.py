@@ -85,3 +85,29 @@ def test_a_trained_policy_sees_the_view_it_was_trained_on_whatever_the_environme
     np.testing.assert_allclose(shown[True], shown[False], rtol=1e-5)  # other programs: rounding only
     indexed = rollout(trained_policy(dataclasses.replace(config, nearest_first=False), learner.actor), key, params, 8)
     assert not np.allclose(indexed.rewards, shown[True])
+
+
+def test_the_rollouts_of_trained_shielded_and_mixed_policies_keep_their_programs(tmp_path, monkeypatch):
+    """A trained policy's act function is a closure; it names itself after its learner config
+    (the same in every process, another for another config), as the shielded and mixed ones
+    built on it do, so a rollout's program is kept on disk: one for the reset, one per policy;
+    read back after the programs in memory are released, it gives the same numbers."""
+    from roverswarm import jaxcache
+    from roverswarm.policies import mixed_policy, shielded
+
+    monkeypatch.setattr(jaxcache, "_store_dir", lambda: tmp_path)
+    jaxcache.release_compiled_programs()  # none in memory: each is looked for in the store
+    params = get_scenario("paper-2")
+    config = TrainConfig(learner=AlgoConfig(share_parameters=True, hidden=(8,)))
+    learner = init_learner(jax.random.PRNGKey(0), config.learner, params.num_rovers, observation_size(params))
+    policy = trained_policy(config, learner.actor)
+    wider = trained_policy(dataclasses.replace(config, learner=AlgoConfig(share_parameters=True, hidden=(9,))), None)
+    policies = [policy, shielded(policy), mixed_policy("mix", [policy, policy]), wider]
+    names = [jaxcache.stable_name(p.act) for p in policies]
+    assert None not in names and len(set(names)) == 4, names
+    assert names[0] == jaxcache.stable_name(trained_policy(config, learner.actor).act)
+    first = [rollout(p, jax.random.PRNGKey(1), params, 4).rewards for p in policies[:3]]
+    assert len(list(tmp_path.iterdir())) == 1 + 3
+    jaxcache.release_compiled_programs()
+    again = [rollout(p, jax.random.PRNGKey(1), params, 4).rewards for p in policies[:3]]
+    assert all(np.array_equal(a, b) for a, b in zip(first, again)) and len(list(tmp_path.iterdir())) == 4

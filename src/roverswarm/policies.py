@@ -25,6 +25,7 @@ import numpy as np
 
 from roverswarm.algos.normalize import ObsNorm
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, EnvState, observe
+from roverswarm.jaxcache import stable_name
 from roverswarm.learners import learner_family
 from roverswarm.oracle import oracle_act, oracle_plan
 from roverswarm.steering import shield_actions
@@ -73,8 +74,11 @@ REFERENCE_POLICIES: dict[str, Policy] = {p.name: p for p in (RANDOM, ORACLE)}
 
 
 @functools.lru_cache(maxsize=None)
-def _trained_act(act: Callable, acting: Hashable, nearest_first: bool, view: Callable | None) -> ActFn:
+def _trained_act(algo: str, acting: Hashable, nearest_first: bool) -> ActFn:
     # one function object per learner config, so rollouts of new weights reuse the compiled code
+    family = learner_family(algo)
+    act, view = family.act, family.view(acting)
+
     def act_fn(key, obs, state, plan, weights, params):
         if view is not None:  # a view of its own (e.g. entities), for any swarm size
             obs = view(state, params)
@@ -82,7 +86,18 @@ def _trained_act(act: Callable, acting: Hashable, nearest_first: bool, view: Cal
             obs = observe(state, params.replace(nearest_first=nearest_first))
         return act(acting, weights, obs, plan)  # plan: with ensembles, every agent's sub-policy [N]
 
+    # named the same in every process, so that its rollouts' programs are kept (roverswarm.jaxcache)
+    act_fn.stored_name = f"{__name__}.trained({family.name!r}, {acting!r}, {nearest_first})"
     return act_fn
+
+
+def _named_after(outer: ActFn, wrapper: str, inner: ActFn) -> ActFn:
+    """``outer`` (``wrapper`` around ``inner``) named for the programs kept across processes
+    (:func:`~roverswarm.jaxcache.stable_name`), if ``inner`` has such a name."""
+    inner_name = stable_name(inner)
+    if inner_name is not None:
+        outer.stored_name = f"{__name__}.{wrapper}({inner_name})"
+    return outer
 
 
 @functools.lru_cache(maxsize=None)
@@ -92,7 +107,7 @@ def _shielded_act(act_fn: ActFn) -> ActFn:
         return shield_actions(state, act_fn(key, obs, state, plan, weights, params), params)
 
     shielded_act.unshielded = act_fn  # for mixed_policy: one layer over the mix, not one per rover
-    return shielded_act
+    return _named_after(shielded_act, "shielded", act_fn)
 
 
 def shielded(policy: Policy) -> Policy:
@@ -125,7 +140,7 @@ def _mixed_act(act_fn: ActFn) -> ActFn:
         every = [act_fn(key, obs, state, plan, w, params)[..., i, :] for i, w in enumerate(weights)]
         return jnp.stack(every, axis=-2)
 
-    return mixed
+    return _named_after(mixed, "mixed", act_fn)
 
 
 def mixed_policy(name: str, policies: list[Policy]) -> Policy:
@@ -159,7 +174,7 @@ def trained_policy(
     weights = (actor_params, obs_norm)
     family = learner_family(learner.algo)
     acting = family.acting(config)
-    act_fn = _trained_act(family.act, acting, config.nearest_first, family.view(acting))
+    act_fn = _trained_act(learner.algo, acting, config.nearest_first)
     plan = _no_plan if learner.ensemble == 1 else _sub_policy_plan(learner.ensemble, sub_policy, seed)
     policy = Policy(name, act_fn, plan, weights=weights)
     return shielded(policy) if learner.shield else policy

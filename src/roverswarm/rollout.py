@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from roverswarm.env.mars import EnvParams, EnvState, coverage_distance, masks_of, reset, step_env
+from roverswarm.jaxcache import stored_jit
 from roverswarm.metrics import EPISODE_METRICS, episode_totals, settled_coverage, step_stats
 from roverswarm.policies import ActFn, Plan, Policy
 
@@ -75,14 +76,18 @@ def _run_episode(act: ActFn, key: jax.Array, obs: jax.Array, state: EnvState, pl
     return out
 
 
-@partial(jax.jit, static_argnames=("act",))
+@stored_jit(static_argnums=(0,))
 def _rollout_batch(
     act: ActFn, keys: jax.Array, obs: jax.Array, states: EnvState, plan: Plan, weights, params: EnvParams
 ):
     return jax.vmap(partial(_run_episode, act, weights=weights, params=params))(keys, obs, states, plan)
 
 
-_reset_batch = jax.jit(jax.vmap(reset, in_axes=(0, None)))
+@stored_jit
+def _reset_batch(keys: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
+    return jax.vmap(reset, in_axes=(0, None))(keys, params)
+
+
 _coverage_batch = jax.jit(jax.vmap(coverage_distance))
 
 

@@ -19,7 +19,6 @@ new (a replay capped at a short run's transitions is a new shape, though).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import partial
 from typing import Any, Callable, Hashable
 
 import jax
@@ -28,6 +27,7 @@ from flax import struct
 
 from roverswarm.buffers.base import BufferState
 from roverswarm.env.mars import EnvParams
+from roverswarm.jaxcache import stored_jit
 
 
 @struct.dataclass
@@ -67,7 +67,7 @@ def start_runner(
     return _build(program, init_seed, replays, params, jax.random.PRNGKey(seed))
 
 
-@partial(jax.jit, static_argnums=(0, 1, 2))
+@stored_jit(static_argnums=(0, 1, 2))
 def _build(
     program: Program, init_seed: Callable, replays: Callable | None, params: EnvParams, base: jax.Array
 ) -> Runner:

@@ -47,6 +47,7 @@ from roverswarm.buffers.base import (
 from roverswarm.env.entities import EntityView, flat_tokens, observe_nearest
 from roverswarm.env.mars import ACTION_SIZE, EnvParams, masks_of, observe, step_env
 from roverswarm.episodes import executed, exists, reset_all, sizes_of, training_params, training_rewards
+from roverswarm.jaxcache import stored_jit
 from roverswarm.learners.base import Family, Runner, start_runner
 from roverswarm.learners.offpolicy_config import RUN_OPTIONS, OffPolicyConfig, check, configure, run_replay
 from roverswarm.metrics import chunk_means, episode_totals, masked_mean, reduce_metric, step_stats
@@ -324,7 +325,7 @@ def iteration(config: OffPolicyConfig, params: EnvParams, buffer: Buffer, total:
     return runner, (episode, info, updated)
 
 
-@partial(jax.jit, static_argnums=(0,), donate_argnums=(2,))
+@stored_jit(static_argnums=(0,), donate_argnums=(2,))
 def run_chunk(config: OffPolicyConfig, params: EnvParams, runner: Runner, total: jax.Array):
     """``log_every`` episodes per seed of a run of ``total`` episodes (traced: another length
     compiles nothing new); returns the runner and per-seed chunk metrics."""

@@ -40,6 +40,7 @@ from roverswarm.algos.ppo_networks import policy_networks
 from roverswarm.env.mars import EnvParams, failed_rovers, observation_size, step_env
 from roverswarm.episodes import executed, exists, reset_all, training_params, training_rewards
 from roverswarm.errors import require, require_finite, require_positive
+from roverswarm.jaxcache import stored_jit
 from roverswarm.learners.base import Family, Runner, no_replay, start_runner
 from roverswarm.metrics import chunk_means, episode_totals, settled_coverage, step_stats
 from roverswarm.oracle import greedy_plan, oracle_actions
@@ -282,7 +283,7 @@ def iteration(config: OnPolicyConfig, params: EnvParams, state: PPOState, xs: tu
     return state, (episode, jax.tree.map(jnp.mean, info))
 
 
-@partial(jax.jit, static_argnums=(0,), donate_argnums=(2,))
+@stored_jit(static_argnums=(0,), donate_argnums=(2,))
 def run_chunk(config: OnPolicyConfig, params: EnvParams, runner: Runner, total: jax.Array | None = None):
     """``log_every`` episodes per seed (``log_every / num_envs`` iterations, seeds vmapped);
     returns the runner and per-seed chunk metrics [S]: the episode totals and
