@@ -186,11 +186,13 @@ class StoredJit:
                 return out_leaves
 
             try:
-                found = jax.export.export(jax.jit(flat_out))(*leaves), out_trees[0]
+                serialized = jax.export.export(jax.jit(flat_out))(*leaves).serialize()
             except Exception:  # not exportable: compiled as it is, never stored
                 plain = jax.jit(flat, donate_argnums=donated)
                 return lambda flat_leaves: plain(*flat_leaves)
-            _write(path, *found)
+            _write(path, serialized, out_trees[0])
+            # run as read back: the program a later process reads, compiled once for both
+            found = jax.export.deserialize(serialized), out_trees[0]
         exported, out_tree = found
         call = jax.jit(exported.call, donate_argnums=donated)
         return lambda flat_leaves: jax.tree.unflatten(out_tree, call(*flat_leaves))
@@ -217,8 +219,9 @@ def stored_jit(
     """``jax.jit(fun, static_argnums, donate_argnums)`` whose traced programs are kept on disk
     (``jax.export``, beside the compilation cache): a new process reads a program it has
     traced before instead of tracing and lowering it again (a training chunk: about 4 s), and
-    the compilation cache then finds it compiled. Every call runs the exported program, read
-    or just traced, so the numbers never depend on what the store held. A program is found
+    the compilation cache then finds it compiled. Every call runs the exported program as the
+    store holds it (serialised and read back even when just traced), so the numbers never
+    depend on what the store held, and one compiled program serves both. A program is found
     again only for the same function, static arguments (compared by ``repr``; functions by
     name), argument shapes and types, package source, library versions and JAX settings.
     Decorator: ``@stored_jit(static_argnums=(0,))``."""
@@ -250,7 +253,7 @@ def _read(path: Path | None) -> tuple[jax.export.Exported, Any] | None:
         return None
 
 
-def _write(path: Path | None, exported: jax.export.Exported, out_tree: Any) -> None:
+def _write(path: Path | None, serialized: bytearray, out_tree: Any) -> None:
     """Keep the program at ``path``, atomically (another process may read or write it at once);
     a store that cannot be written (read-only, full) keeps nothing and stops nothing."""
     if path is None:
@@ -258,7 +261,7 @@ def _write(path: Path | None, exported: jax.export.Exported, out_tree: Any) -> N
     partial = path.with_name(f"{path.name}.{os.getpid()}.tmp")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        partial.write_bytes(pickle.dumps((bytes(exported.serialize()), out_tree)))
+        partial.write_bytes(pickle.dumps((bytes(serialized), out_tree)))
         os.replace(partial, path)
     except OSError:
         if partial.exists():
