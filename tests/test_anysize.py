@@ -549,7 +549,7 @@ def test_one_policy_learns_two_sizes_and_beats_random_by_a_wide_margin(tmp_path)
     """The anysize preset on paper-2..3 (its curriculum and annealing shortened), 1000 episodes:
     every seed beats random by a wide margin at both sizes, and at paper-4, which it never
     trained on (0.74 / 0.75, 0.69 / 0.66, 0.61 / 0.61 when written; 2000 episodes: 0.79 at
-    worst, in 1.4 times the time on one core)."""
+    worst, training twice as long)."""
     preset = with_options(ANYSIZE, {"anneal_episodes": 1000})
     config = dataclasses.replace(
         preset, scenario="paper-2..3", episodes=1000, size_curriculum=500, seeds=2, num_envs=40

@@ -77,6 +77,13 @@ class Scale:
 
     factor: float
 
+    def times(self, x: jax.Array) -> jax.Array:
+        return x * self.factor
+
+
+def apply(f, x: jax.Array) -> jax.Array:
+    return f(x)
+
 
 TRACED: list[Scale] = []
 """Every trace of :func:`scaled_sum` (by its static argument)."""
@@ -152,18 +159,24 @@ def doubled_on_the_host(x: jax.Array) -> jax.Array:
 
 
 def test_what_cannot_be_stored_is_jitted_as_it_is(store, monkeypatch):
-    """A closure as the static argument (no name that is the same in every process), no store
-    (the compilation cache off), a host callback (JAX does not export it): the numbers of
+    """A closure as the static argument (no name that is the same in every process), a host
+    callback (JAX does not export it), no store (the compilation cache off): the numbers of
     ``jax.jit``, nothing written."""
     stored = jaxcache.stored_jit(lambda f, x: f(x) + 1, static_argnums=(0,))
     offset = 3.0
     assert float(stored(lambda x: x * offset, jnp.float32(2.0))) == 7.0
+    assert list(store.iterdir()) == []
+    # bound methods: named by their repr, which holds their object's (a qualified name alone
+    # gave both the first's program)
+    applied = jaxcache.stored_jit(apply, static_argnums=(0,))
+    assert [float(applied(Scale(k).times, jnp.float32(2.0))) for k in (2.0, 5.0)] == [4.0, 10.0]
+    assert len(list(store.iterdir())) == 2
     HOST_CALLS.clear()
     assert np.array_equal(jaxcache.stored_jit(doubled_on_the_host)(jnp.arange(3.0)), [0.0, 2.0, 4.0])
     assert HOST_CALLS == [3]
     monkeypatch.setattr(jaxcache, "_store_dir", lambda: None)
     assert _equal(STORED(Scale(3.0), *_args()), jax.jit(scaled_sum, static_argnums=(0,))(Scale(3.0), *_args()))
-    assert list(store.iterdir()) == []
+    assert len(list(store.iterdir())) == 2
 
 
 def test_a_store_that_cannot_be_written_keeps_nothing_and_stops_nothing(store, monkeypatch):

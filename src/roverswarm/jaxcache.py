@@ -15,6 +15,7 @@ import functools
 import gc
 import hashlib
 import importlib.metadata
+import inspect
 import os
 import pickle
 from collections.abc import Callable, Hashable
@@ -127,12 +128,13 @@ def stable_name(static: Any) -> str | None:
     """Text naming ``static`` that is the same in every process, or None: a function that names
     itself (its ``stored_name``: a closure built from what the text says), a module-level
     function by its module and name, anything else by its ``repr`` unless that holds an
-    address (a lambda, a closure, an object without a ``repr`` of its own)."""
+    address (a lambda, a closure, a bound method, an object without a ``repr`` of its own)."""
     named = getattr(static, "stored_name", None)
     if named is not None:
         return named
     name = getattr(static, "__qualname__", "")
-    if callable(static) and name and "<" not in name and getattr(static, "__closure__", None) is None:
+    plain = callable(static) and not inspect.ismethod(static) and getattr(static, "__closure__", None) is None
+    if plain and name and "<" not in name:
         return f"{static.__module__}.{name}"
     text = repr(static)
     return None if " at 0x" in text else text
