@@ -257,7 +257,9 @@ def _read(path: Path | None) -> tuple[jax.export.Exported, Any] | None:
 
 def _write(path: Path | None, serialized: bytearray, out_tree: Any) -> None:
     """Keep the program at ``path``, atomically (another process may read or write it at once);
-    a store that cannot be written (read-only, full) keeps nothing and stops nothing."""
+    a store that cannot be written (read-only, full) keeps nothing and stops nothing. Not
+    :func:`roverswarm.storage.atomic_write`: its one temporary name per path would be shared by
+    two processes storing the same program at once, and its failure is the user's error."""
     if path is None:
         return
     partial = path.with_name(f"{path.name}.{os.getpid()}.tmp")
