@@ -112,6 +112,11 @@ def store(tmp_path, monkeypatch):
     STORED._programs.clear()
 
 
+def _programs(store) -> list:
+    """The programs kept in ``store``, of every source version."""
+    return sorted(store.rglob("*.program"))
+
+
 def _equal(a, b) -> bool:
     return jax.tree.structure(a) == jax.tree.structure(b) and all(
         np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b))
@@ -127,16 +132,16 @@ def test_a_stored_program_gives_jax_jits_numbers_and_a_new_process_reads_it_with
     tree, bias = _args()
     assert _equal(STORED(Scale(1.5), tree, bias), expected)
     assert tree["x"].is_deleted() and not bias.is_deleted()
-    assert TRACED == [Scale(1.5)] and len(list(store.iterdir())) == 1
+    assert TRACED == [Scale(1.5)] and len(_programs(store)) == 1
     release_compiled_programs()
     assert _equal(STORED(Scale(1.5), *_args()), expected) and TRACED == [Scale(1.5)]
     STORED(Scale(2.0), *_args())
-    assert TRACED == [Scale(1.5), Scale(2.0)] and len(list(store.iterdir())) == 2
+    assert TRACED == [Scale(1.5), Scale(2.0)] and len(_programs(store)) == 2
 
 
 def test_a_program_of_other_source_or_an_unreadable_one_is_traced_again(store, monkeypatch):
     expected = STORED(Scale(1.5), *_args())
-    (path,) = store.iterdir()
+    (path,) = _programs(store)
     path.write_bytes(path.read_bytes()[:100])  # cut short
     STORED._programs.clear()
     assert _equal(STORED(Scale(1.5), *_args()), expected) and len(TRACED) == 2
@@ -144,7 +149,24 @@ def test_a_program_of_other_source_or_an_unreadable_one_is_traced_again(store, m
     monkeypatch.setattr(jaxcache, "_fingerprint", lambda: "another version of the package")
     STORED._programs.clear()
     assert _equal(STORED(Scale(1.5), *_args()), expected) and len(TRACED) == 3
-    assert len(list(store.iterdir())) == 2
+    assert len(_programs(store)) == 2
+
+
+def test_the_store_keeps_the_programs_of_the_most_recently_used_source_versions(store):
+    """Each source version's programs are a folder of their own; the first program a process
+    keeps marks its version's folder as used and removes all but the KEEP_VERSIONS most
+    recently used, and the programs of the store's first layout (files at its top)."""
+    (store / "first-layout.program").write_bytes(b"read by no version")
+    older = [store / f"version-{age}" for age in range(jaxcache.KEEP_VERSIONS + 2)]
+    for age, folder in enumerate(older):  # version-0 used last
+        folder.mkdir()
+        (folder / "kept.program").write_bytes(b"a program")
+        os.utime(folder, (1e9 - age, 1e9 - age))
+    STORED(Scale(1.5), *_args())
+    kept = sorted(p.name for p in store.iterdir())
+    (current,) = set(kept) - {folder.name for folder in older}
+    assert kept == sorted([current, *(f"version-{age}" for age in range(jaxcache.KEEP_VERSIONS - 1))])
+    assert [p.parent.name for p in _programs(store)].count(current) == 1
 
 
 HOST_CALLS: list[int] = []
@@ -165,18 +187,18 @@ def test_what_cannot_be_stored_is_jitted_as_it_is(store, monkeypatch):
     stored = jaxcache.stored_jit(lambda f, x: f(x) + 1, static_argnums=(0,))
     offset = 3.0
     assert float(stored(lambda x: x * offset, jnp.float32(2.0))) == 7.0
-    assert list(store.iterdir()) == []
+    assert _programs(store) == []
     # bound methods: named by their repr, which holds their object's (a qualified name alone
     # gave both the first's program)
     applied = jaxcache.stored_jit(apply, static_argnums=(0,))
     assert [float(applied(Scale(k).times, jnp.float32(2.0))) for k in (2.0, 5.0)] == [4.0, 10.0]
-    assert len(list(store.iterdir())) == 2
+    assert len(_programs(store)) == 2
     HOST_CALLS.clear()
     assert np.array_equal(jaxcache.stored_jit(doubled_on_the_host)(jnp.arange(3.0)), [0.0, 2.0, 4.0])
     assert HOST_CALLS == [3]
     monkeypatch.setattr(jaxcache, "_store_dir", lambda: None)
     assert _equal(STORED(Scale(3.0), *_args()), jax.jit(scaled_sum, static_argnums=(0,))(Scale(3.0), *_args()))
-    assert len(list(store.iterdir())) == 2
+    assert len(_programs(store)) == 2
 
 
 def test_a_store_that_cannot_be_written_keeps_nothing_and_stops_nothing(store, monkeypatch):

@@ -18,6 +18,7 @@ import importlib.metadata
 import inspect
 import os
 import pickle
+import shutil
 from collections.abc import Callable, Hashable
 from pathlib import Path
 from typing import Any
@@ -238,10 +239,38 @@ def _store_dir() -> Path | None:
     return Path(directory) / STORE if directory else None
 
 
+KEEP_VERSIONS = 4
+"""Source versions (:func:`_fingerprint`) whose stored programs are kept, the most recently
+used: each version's programs are a folder of their own, about 13 MB after a test suite, read
+by no other version."""
+
+
 def _store_path(digest: str) -> Path | None:
-    """Where the program of ``digest`` is kept (None: nowhere)."""
+    """Where the program of ``digest`` is kept (None: nowhere): in this source version's folder."""
     directory = _store_dir()
-    return None if directory is None else directory / f"{digest}.program"
+    return None if directory is None else _version_dir(directory, _fingerprint()) / f"{digest}.program"
+
+
+@functools.lru_cache(maxsize=None)
+def _version_dir(store: Path, fingerprint: str) -> Path:
+    """The folder of ``fingerprint``'s programs in ``store``, once per process: marked as used
+    now, and the folders of all but the :data:`KEEP_VERSIONS` most recently used versions
+    removed, with the programs of the store's first layout (files at its top, session 72). A
+    store that cannot be written stops nothing (:func:`_write` then keeps nothing); a program
+    another process reads from a folder removed at that moment is traced again (:func:`_read`)."""
+    folder = store / hashlib.sha256(fingerprint.encode()).hexdigest()[:16]
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        os.utime(folder)
+        versions = sorted((p for p in store.iterdir() if p.is_dir()), key=lambda p: p.stat().st_mtime, reverse=True)
+        stale = [p for p in versions[KEEP_VERSIONS:] if p != folder]
+        for path in stale:
+            shutil.rmtree(path, ignore_errors=True)
+        for path in store.glob("*.program"):
+            path.unlink(missing_ok=True)
+    except OSError:
+        pass
+    return folder
 
 
 def _read(path: Path | None) -> tuple[jax.export.Exported, Any] | None:
