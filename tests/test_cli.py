@@ -13,6 +13,7 @@ import pytest
 from roverswarm.cli import SIGPIPE_EXIT, main, print_table
 from roverswarm.env import SCENARIOS, get_scenario
 from roverswarm.env.mars import observation_size
+from roverswarm.errors import RunStopped
 
 
 def test_scenarios_lists_every_preset_with_sizes(capsys):
@@ -254,3 +255,38 @@ def test_output_into_a_closed_pipe_ends_quietly(argv, cli_into_closed_pipe):
     done = cli_into_closed_pipe(*argv)
     said = done.stderr
     assert done.returncode == SIGPIPE_EXIT and "Traceback" not in said and "Error" not in said, said
+
+
+@pytest.mark.parametrize(
+    "args, notes",
+    [
+        (["--scenario", "paper-2", "--episodes", "400", "--log-every", "200"], ["no update will run", "no --out"]),
+        (
+            ["--scenario", "paper-2", "--episodes", "400", "--log-every", "200", "--warmup", "5000", "--out", "{out}"],
+            [],
+        ),
+        (["--scenario", "paper-2", "--episodes", "2000", "--out", "{out}"], []),  # 50,000 transitions
+        (["--preset", "mappo", "--scenario", "paper-2", "--episodes", "400", "--log-every", "200"], ["no --out"]),
+    ],
+)
+def test_train_says_before_it_starts_when_a_run_would_update_nothing_or_keep_nothing(
+    args, notes, tmp_path, capsys, monkeypatch
+):
+    """An off-policy run shorter than its --warmup ends with its networks as initialised (25 steps
+    x 400 episodes = 10,000 transitions, against 25,600); a run without --out keeps nothing."""
+    import roverswarm.cli as cli
+
+    reached = []
+
+    def stopped(config, out=None, **kwargs):
+        reached.append(config)
+        raise RunStopped("stopped before training, by the test")
+
+    monkeypatch.setattr(cli, "train", stopped)
+    main(["train", *(a.replace("{out}", str(tmp_path / "run")) for a in args)])
+    assert len(reached) == 1  # the command was valid and got as far as training
+    captured = capsys.readouterr()
+    said = " ".join((captured.out + captured.err).split()).split("note: ")[1:]  # lines wrap at the terminal's width
+    assert len(said) == len(notes) and all(n in line for n, line in zip(notes, said)), said
+    if notes[:1] == ["no update will run"]:
+        assert "--warmup 25600" in said[0] and "--episodes >= 1024" in said[0]

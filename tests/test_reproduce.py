@@ -445,6 +445,16 @@ def test_the_grid_sets_preset_ensembles_inferred_policies_and_the_optimizer(tmp_
     }
     assert main(["reproduce", "--out", str(tmp_path), "--algorithms", "maddpg", "--variants", "a"]) == 2
     assert "--variants needs maddpg-optimizer or ddpg-optimizer in --algorithms" in capsys.readouterr().err
+    # options no arm of the grid reads are refused, not dropped
+    refused = {
+        ("--algorithms", "ddpg", "--alpha", "3"): "--alpha set the optimizer: give maddpg-optimizer or ddpg-optimizer",
+        ("--algorithms", "maddpg", "--reading", "schaul", "--beta", "0"): "--reading, --beta set the optimizer",
+        ("--algorithms", "mappo", "--ensemble", "3"): "--ensemble is for the paper's learners",
+        ("--algorithms", "ddpg", "ddpg-optimizer", "--infer-policies"): "--infer-policies is for the MADDPG arms",
+    }
+    for args, message in refused.items():
+        assert main(["reproduce", "--out", str(tmp_path), *args]) == 2, args
+        assert message in capsys.readouterr().err, args
 
 
 def test_the_quick_grid_trains_the_smallest_and_largest_swarm_and_the_full_grid_all_four(tmp_path):
@@ -767,10 +777,12 @@ def test_a_signal_during_a_grid_in_this_process_is_answered_at_once(base, tmp_pa
     announced when it comes (not only once the chunk has ended), and the run keeps its checkpoint."""
     disarm = signal_at_chunk(signal.SIGINT, chunk=2)
     try:
-        with pytest.raises(RunStopped, match="interrupted at episode 200"):
+        with pytest.raises(RunStopped, match="interrupted at episode 200") as stopped:
             reproduce(tiny_grid(tmp_path, scenarios=("paper-2",), algorithms=("ddpg",)), base, live=False)
     finally:
         disarm()
+    # the grid is resumed by its own command, not by resuming the one run (which writes no table)
+    assert "rerun the same command to resume" in str(stopped.value) and "train --resume" not in str(stopped.value)
     assert " ".join(capsys.readouterr().err.split()).count("SIGINT: stopping after this chunk, with a checkpoint") == 1
     assert (tmp_path / "runs" / "paper-2" / "ddpg" / "checkpoint.npz").exists()
 

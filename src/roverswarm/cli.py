@@ -34,7 +34,7 @@ from roverswarm.limits import read_config
 from roverswarm.mission import MissionConfig, MissionRunConfig
 from roverswarm.presets import PRESETS
 from roverswarm.runs import CONFIG
-from roverswarm.trainer import train
+from roverswarm.trainer import train, training_notes
 
 
 @dataclass(frozen=True)
@@ -71,6 +71,7 @@ class ReproduceCommand:
 
 def run_train(cmd: TrainCommand) -> None:
     if cmd.resume is None:
+        _train_notes(cmd.config, cmd.out)
         result = train(cmd.config, out=cmd.out)
     else:
         require((cmd.resume / CONFIG).exists(), f"--resume: '{cmd.resume}' holds no config.json")
@@ -86,13 +87,20 @@ def run_train(cmd: TrainCommand) -> None:
             f"--resume: the run in '{cmd.resume}' is --algo {saved.learner.algo} and --preset {cmd.preset} trains "
             f"--algo {algo}; resume it without --preset",
         )
-        result = train(resumed_config(cmd.config, saved), out=cmd.resume, resume=True)
+        config = resumed_config(cmd.config, saved)
+        _train_notes(config, cmd.resume)
+        result = train(config, out=cmd.resume, resume=True)
     last = [r for r in result.metrics if r["episodes"] == result.metrics[-1]["episodes"]]
     mean = sum(r["episode_reward"] for r in last) / len(last)
     _console().print(
         f"done: mean episode reward {mean:.2f} over the last {result.config.log_every} episodes"
         + (f"; results in {result.out}" if result.out else "")
     )
+
+
+def _train_notes(config: TrainConfig, out: Path | None) -> None:
+    for note in training_notes(config, out):
+        _console().print(f"note: {note}")
 
 
 def run_reproduce(cmd: ReproduceCommand) -> None:

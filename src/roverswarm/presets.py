@@ -85,7 +85,8 @@ ANYSIZE_DDPG = dataclasses.replace(
 :data:`ANYSIZE` (4 of each type, no rover ids), trained on swarms of 2 to 10 rovers, the
 largest size drawn growing to 10 over the first 5,000 episodes, every rover learning from one
 draw of transitions per update (``--one-batch``); 60,000 episodes, about 117 minutes for 5
-seeds on 2 cores. It scores 0.03 to 0.13 below :data:`ANYSIZE` at every size but touches traps
+seeds on 2 cores. It scores 0.14 to 0.23 below :data:`ANYSIZE` at every size from 2 to 10 (0.03
+to 0.13 below the earlier 250,000-episode any-size run) but touches traps
 at most twice as often as the oracle from N = 5 up (``docs/results/any-size/``). ``--algo
 maddpg --critic-neighbors 2`` gives MATD3's centralised critic over each rover's 2 nearest others."""
 

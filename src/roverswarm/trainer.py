@@ -179,6 +179,17 @@ def train(
         return _train(config, params, Path(out), resume, progress, on_chunk, announce)
 
 
+def training_notes(config: TrainConfig, out: str | Path | None) -> list[str]:
+    """What a user should hear before a run of ``config`` into ``out`` starts: that it would
+    end without one update (the family's :attr:`~roverswarm.learners.base.Family.idle`), or
+    keep nothing (no run folder). ``train`` on the command line prints them."""
+    params = validate_training(config)
+    notes = [learner_family(config.learner.algo).idle(config, params)]
+    if out is None:
+        notes.append("no --out: nothing of the run is kept (networks, metrics, learning curve); give --out to keep it")
+    return [note for note in notes if note]
+
+
 def checkpoint_due(config: TrainConfig, chunks_done: int, saved_at: float) -> bool:
     """A checkpoint is due after every ``--checkpoint-every`` chunks of this session
     (``chunks_done``) and once ``--checkpoint-minutes`` have passed since the last one was

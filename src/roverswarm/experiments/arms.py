@@ -282,11 +282,29 @@ def plan(config: ReproduceConfig, base: TrainConfig | None = None) -> list[GridR
         not config.variants or any(a in OPTIMIZERS for a in config.algorithms),
         f"--variants needs {' or '.join(OPTIMIZERS)} in --algorithms",
     )
+    given = [
+        f"--{k.replace('_', '-')}"
+        for k in ("reading", "alpha", "beta", "refresh_every")
+        if getattr(config, k) is not None
+    ]
+    require(
+        not given or any(a in OPTIMIZERS for a in config.algorithms),
+        f"{', '.join(given)} set the optimizer: give {' or '.join(OPTIMIZERS)} in --algorithms",
+    )
     arms: dict[str, dict[str, object]] = {}
     for algorithm in config.algorithms:
         arms.update(
             optimizer_arms(config, algorithm) if algorithm in OPTIMIZERS else {algorithm: dict(ALGORITHMS[algorithm])}
         )
+    learners = [settings for settings in arms.values() if "preset" not in settings]  # the paper's
+    require(
+        config.ensemble is None or bool(learners),
+        "--ensemble is for the paper's learners (ddpg, maddpg and their optimizer arms); --algorithms has none",
+    )
+    require(
+        not config.infer_policies or any(settings["algo"] == "maddpg" for settings in learners),
+        "--infer-policies is for the MADDPG arms (maddpg, maddpg-optimizer); --algorithms has none",
+    )
     paper = {} if config.ensemble is None else {"ensemble": config.ensemble}
     runs = []
     for scenario in config.grid_scenarios:

@@ -25,14 +25,20 @@ def run_local(runs: list[GridRun], summary: Summary, keep_programs: bool = False
     for run in runs:
         resume = status(run) == "partial"
         summary.progress(run, episodes_done(run) if resume else 0)
-        train(  # no bar (the summary shows every run), but a Ctrl-C is answered at once
-            run.config,
-            out=run.folder,
-            resume=resume,
-            progress=False,
-            on_chunk=lambda e, r=run: summary.progress(r, e),
-            announce=True,
-        )
+        try:
+            train(  # no bar (the summary shows every run), but a Ctrl-C is answered at once
+                run.config,
+                out=run.folder,
+                resume=resume,
+                progress=False,
+                on_chunk=lambda e, r=run: summary.progress(r, e),
+                announce=True,
+            )
+        except RunStopped:  # train's own message names the run alone, which finishes no grid
+            raise RunStopped(
+                f"interrupted at episode {episodes_done(run)} of run '{run.name}', checkpoint saved: "
+                "rerun the same command to resume"
+            ) from None
         release_compiled_programs(only_if_crowded=keep_programs)  # each run compiles its own programs
         summary.finish(run)
 

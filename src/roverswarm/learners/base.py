@@ -128,6 +128,9 @@ class Family:
     check_training: Callable[[Any], None] = lambda config: None
     """config -> None: what training refuses, else :class:`UserError`, beyond :attr:`check`:
     a run folder written before the rule may hold it, and must still load (nothing by default)."""
+    idle: Callable[[Any, EnvParams], str | None] = lambda config, params: None
+    """(run config, params) -> why a run of ``config`` would end without one update (``train``
+    says so before it starts), or None (by default)."""
 
 
 def no_replay(config: Any, params: EnvParams) -> tuple[int, int, int]:

@@ -355,6 +355,19 @@ def _act(learner: AlgoConfig, weights, obs, plan) -> jax.Array:
     return act(learner, actor, obs, plan, obs_norm)
 
 
+def idle(config, params: EnvParams) -> str | None:
+    """Why a run of ``config`` (a ``TrainConfig``) makes no update at all: its episodes end before the replay holds
+    ``--warmup`` transitions per seed (the update gate in :func:`iteration`); else None."""
+    seen = config.episodes * params.max_steps
+    if seen >= config.warmup:
+        return None
+    return (
+        f"no update will run: --episodes {config.episodes} x {params.max_steps} steps give {seen} transitions per "
+        f"seed, fewer than --warmup {config.warmup} before the first update; the policy stays as initialised "
+        f"(give --episodes >= {-(-config.warmup // params.max_steps)} or a smaller --warmup)"
+    )
+
+
 FAMILY = Family(
     name="off-policy",
     configure=configure,
@@ -376,5 +389,6 @@ FAMILY = Family(
         + list(RUN_OPTIONS)
     ),
     misfit="it is a PPO option (--algo mappo or ippo), and this run is --algo {algo}",
+    idle=idle,
 )
 """MADDPG and DDPG (and the MATD3 options) learning from a replay."""
