@@ -327,6 +327,12 @@ def test_bad_failures_are_refused(text, message):
         parse_failures([text], load_mission(EXAMPLES / "mission.yaml").params)
 
 
+def test_a_rover_given_two_failure_steps_is_refused():
+    """Not the earlier step silently: the user meant one of them."""
+    with pytest.raises(UserError, match="--fail 1@5: rover 1 already fails at step 3; give each rover one --fail"):
+        parse_failures(["1@3", "0@2", "1@5"], load_mission(EXAMPLES / "mission.yaml").params)
+
+
 def test_the_oracle_takes_over_the_poi_of_a_failed_rover():
     params = EnvParams(num_rovers=3, num_pois=3, num_traps=0)
     _, state = reset(jax.random.PRNGKey(0), params)

@@ -231,14 +231,14 @@ def test_jobs_train_a_sweep_side_by_side_to_the_numbers_of_one_process(finished,
 @pytest.mark.parametrize(
     "spec, message",
     [
-        ({"settings": {"a": {"learning_rate": 1}}}, "setting 'a': unknown option 'learning_rate'"),
+        ({"settings": {"a": {"learning_rate": 1}}}, "bad.yaml': setting 'a': unknown option 'learning_rate'"),
         ({"scenarios": ["mars-1"], "settings": {"a": {}}}, "unknown scenario 'mars-1'"),
         ({"scenarios": ["paper-99"], "settings": {"a": {}}}, "scenario 'paper-99': every N must be in 2..64"),
         ({"preset": "anysize", "scenarios": ["paper-3"], "settings": {"a": {}}}, "needs a range of swarm sizes"),
         ({"preset": "fast", "settings": {"a": {}}}, "preset must be one of default, reference, swarm"),
         ({"settings": {"a": {"share_parameters": True, "ensemble": 2}}}, "--share-parameters does not compose"),
         ({"settings": {}}, "settings must map names to options"),
-        ({"settings": {"a": {"preset": "fast"}}}, "setting 'a': preset must be one of"),
+        ({"settings": {"a": {"preset": "fast"}}}, "bad.yaml': setting 'a': preset must be one of"),
         ({"runs": 3, "settings": {"a": {}}}, "unknown keys ['runs']"),
         # a setting's name becomes a folder: one safe path component only
         ({"settings": {"/srv/victim": {}}}, "setting name: '/srv/victim' cannot name a folder"),
@@ -275,6 +275,7 @@ def test_bad_sweep_files_are_one_line_and_exit_2(spec, message, tmp_path, capsys
     assert main(["sweep", str(path), "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
+    assert "mission_text" not in err  # the known options listed are those a user can give
 
 
 def test_a_name_given_twice_is_refused_before_anything_trains(tmp_path, capsys):

@@ -682,6 +682,12 @@ def test_a_truncated_checkpoint_is_one_line_and_exit_2(unbroken, tmp_path, capsy
         assert main(argv) == 2
         err = capsys.readouterr().err
         assert "cannot be read" in err and "truncated" in err and err.count("\n") == 1, err
+    # bytes that are no zip at all: numpy takes them for a pickle and advises allow_pickle=True,
+    # which no checkpoint needs
+    (broken / CHECKPOINT).write_bytes(bytes(range(256)) * 4)
+    assert main(["evaluate", str(broken), "--episodes", "5"]) == 2
+    err = capsys.readouterr().err
+    assert "not a roverswarm checkpoint" in err and "pickle" not in err and err.count("\n") == 1, err
 
 
 def test_a_missing_checkpoint_says_so(tmp_path):

@@ -306,9 +306,10 @@ def with_options(base: TrainConfig, options: dict[str, object], where: str = "op
     line, with underscores); :class:`UserError` naming an unknown option."""
     owner = {f.name: part for part, cls in _NESTED.items() for f in dataclasses.fields(cls)}
     known = set(fields_by_name(base))
+    shown = sorted(known - {"mission_text"})  # kept by the program beside --mission, not an option to give
     changes: dict[str, dict[str, object]] = {"": {}, **{part: {} for part in _NESTED}}
     for name, value in options.items():
-        require(name in known, f"{where}: unknown option '{name}'; known: {', '.join(sorted(known))}")
+        require(name in known, f"{where}: unknown option '{name}'; known: {', '.join(shown)}")
         changes[owner.get(name, "")][name] = tuple(value) if isinstance(value, list) else value  # type: ignore[arg-type]
     try:
         nested = {part: dataclasses.replace(getattr(base, part), **changes[part]) for part in _NESTED}

@@ -126,7 +126,11 @@ def parse_failures(failures: list[str], params: EnvParams) -> np.ndarray:
         rover, step = int(match[1]), int(match[2])
         require(rover < params.num_rovers, f"--fail {text}: rover must be in [0, {params.num_rovers}), got {rover}")
         require(step < params.max_steps, f"--fail {text}: step must be in [0, {params.max_steps}), got {step}")
-        fail_step[rover] = min(fail_step[rover], step)
+        require(
+            fail_step[rover] == NEVER,
+            f"--fail {text}: rover {rover} already fails at step {fail_step[rover]}; give each rover one --fail",
+        )
+        fail_step[rover] = step
     return fail_step
 
 

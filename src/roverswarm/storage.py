@@ -171,6 +171,10 @@ def atomic_write_files(contents: dict[Path, str | bytes]) -> None:
 def _unreadable(path: Path, error: Exception) -> UserError:
     if isinstance(error, FileNotFoundError):
         return UserError(f"no checkpoint at '{path}': the file does not exist")
+    if isinstance(error, ValueError):  # numpy's own text advises loading pickles, which no checkpoint holds
+        return UserError(
+            f"'{path}' cannot be read (not a file of arrays); it is truncated or not a roverswarm checkpoint"
+        )
     return UserError(f"'{path}' cannot be read ({error}); it is truncated or not a roverswarm checkpoint")
 
 

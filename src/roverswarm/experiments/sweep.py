@@ -142,10 +142,12 @@ def load_sweep(path: Path, out: Path) -> list[GridRun]:
             start = options.pop("preset", preset)
             require(
                 isinstance(start, str) and start in PRESETS,
-                f"setting '{name}': preset must be one of {', '.join(PRESETS)}, got {start!r}",
+                f"sweep file '{path}': setting '{name}': preset must be one of {', '.join(PRESETS)}, got {start!r}",
             )
             base = with_options(PRESETS[start], common, f"sweep file '{path}'")
-            config = with_options(dataclasses.replace(base, scenario=scenario), options, f"setting '{name}'")
+            config = with_options(
+                dataclasses.replace(base, scenario=scenario), options, f"sweep file '{path}': setting '{name}'"
+            )
             with within(f"sweep file '{path}': setting '{name}' on {scenario}"):  # where the flag's value came from
                 params = validate_training(config)
             check_memory(training_parts(config, params), f"setting '{name}' on {scenario}")
