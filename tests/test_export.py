@@ -385,6 +385,12 @@ def test_refusals_are_one_line_and_exit_code_2(exported, tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and re.search(message, err[0]), err
         assert not (tmp_path / "out").exists()
+    # into the run's own folder: the run's files stay its own (as `mission run --out RUN`)
+    before = sorted(p.name for p in Path(run).iterdir())
+    assert main(["export", str(run), "--out", str(run)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "holds a training run" in err[0], err
+    assert sorted(p.name for p in Path(run).iterdir()) == before
 
 
 def test_an_export_does_not_replace_files_of_a_folder_that_holds_no_export(exported, tmp_path, capsys):

@@ -33,7 +33,15 @@ from roverswarm.env.mars import NEVER, EnvParams, EnvState, failed_rovers, obser
 from roverswarm.env.scenarios import get_scenario, range_sizes
 from roverswarm.errors import UserError, require
 from roverswarm.learners import learner_family, offpolicy
-from roverswarm.runs import CHECKPOINT, Run, budget_spent, checkpointed_rows, folder_lock, training_seconds
+from roverswarm.runs import (
+    CHECKPOINT,
+    Run,
+    budget_spent,
+    check_not_run,
+    checkpointed_rows,
+    folder_lock,
+    training_seconds,
+)
 from roverswarm.steering import FAILED_MARGIN, KEEP_OUT_MARGIN, SHIELD_STEPS, shield_actions
 from roverswarm.storage import atomic_write_files, trained_episodes
 
@@ -365,6 +373,7 @@ def export_run(run_folder: str | Path, out: str | Path, seed: int = 0, shield: b
         f"'{run.folder}' is a policy ensemble (--ensemble {config.learner.ensemble}: each rover draws one of its "
         "sub-policies per episode), which cannot be exported; export a run with --ensemble 1",
     )
+    check_not_run(out)  # the run's own folder (or another's): its files stay the run's alone
     actor, norm = weights_of(run, seed)
     doc = f"roverswarm {config.learner.algo} actor, seed {seed} of {run.folder}"
     model = policy_model(config, run.params, actor, norm, doc)
