@@ -164,6 +164,21 @@ def test_render_drives_the_policy_behind_the_safety_layer_with_shield(tmp_path, 
             "--episodes must be a positive multiple of 1000 (the episodes between the grid's metrics rows; 500 "
             "with --quick), got 40",
         ),
+        # what tyro refuses itself (a choice, an option or a command it does not know, a missing
+        # argument): one line of ours, not its box
+        (
+            ["train", "--preset", "bogus"],
+            "--preset must be one of default, reference, swarm, mappo, ippo, anysize, anysize-ddpg, got 'bogus'",
+        ),
+        (
+            ["train", "--episods", "5"],
+            "unknown option --episods (did you mean --episodes?): see roverswarm train --help",
+        ),
+        (["render", "--animation", "webm"], "unknown option --animation: see roverswarm render --help"),
+        (["evaluate", "some-run", "--bogus", "3"], "unknown option --bogus: see roverswarm evaluate --help"),
+        (["nosuch"], "unknown command 'nosuch': choose one of scenarios, render, train, evaluate, sweep,"),
+        (["mission", "bogus"], "unknown command 'bogus': choose one of run, stress"),
+        (["export"], "roverswarm export needs PATH, --out: see roverswarm export --help"),
         # a list option with nothing after it (an unset shell variable): not its default
         (["reproduce", "--variants", "--quick"], "--variants was given no value, most likely an unset shell variable"),
         (["reproduce", "--scenarios"], "--scenarios was given no value"),
@@ -179,6 +194,16 @@ def test_bad_input_is_one_line_and_exit_code_2(argv, message, capsys, tmp_path, 
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_tyro_refusals_are_one_line_in_a_narrow_terminal(capsys, monkeypatch):
+    """tyro wraps its box to the terminal's width: the line read from it is the same."""
+    monkeypatch.setenv("COLUMNS", "30")
+    assert main(["train", "--algo", "sac"]) == 2
+    assert capsys.readouterr().err == "roverswarm: error: --algo must be one of maddpg, ddpg, mappo, ippo, got 'sac'\n"
+    assert main(["train", "--episods", "5"]) == 2
+    expected = "roverswarm: error: unknown option --episods (did you mean --episodes?): see roverswarm train --help\n"
+    assert capsys.readouterr().err == expected
 
 
 def test_a_refused_forced_grid_keeps_the_earlier_timings(tmp_path, capsys):

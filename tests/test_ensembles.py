@@ -343,6 +343,13 @@ def test_evaluation_runs_random_draws_or_each_sub_policy(ensemble_run, capsys):
     assert "sub-policy 1" in capsys.readouterr().out
 
 
+def test_each_sub_policy_of_a_run_without_ensembles_is_refused(tiny_config):
+    """``--sub-policies each`` on a run with one policy per agent would evaluate the same
+    policies as ``random``: refused, not run under another name."""
+    with pytest.raises(UserError, match=r"^--sub-policies each needs a run trained with --ensemble K > 1"):
+        Run.of(tiny_config, learner=None).policies("each")
+
+
 @pytest.mark.parametrize(
     "argv, message",
     [

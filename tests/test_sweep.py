@@ -288,6 +288,17 @@ def test_a_name_given_twice_is_refused_before_anything_trains(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+def test_an_out_that_is_a_file_is_refused_as_other_commands_refuse_it(tmp_path, capsys):
+    """``--out`` naming a file: the message every command gives, not the system's "File exists"."""
+    path, out = tmp_path / "one.yaml", tmp_path / "notes.txt"
+    path.write_text("scenarios: [paper-2]\nsettings:\n  a: {}\n")
+    out.write_text("kept")
+    assert main(["sweep", str(path), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"output folder '{out}' is a file (or lies inside one), not a folder" in err and err.count("\n") == 1
+    assert out.read_text() == "kept"
+
+
 def test_numbers_with_an_exponent_are_numbers(tmp_path):
     """YAML 1.1 reads 3e-4 (no dot) and 1.0e5 (no sign) as strings; a sweep file reads them as
     JSON and YAML 1.2 do."""

@@ -10,7 +10,6 @@ from __future__ import annotations
 import contextlib
 import io
 import os
-import re
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,6 +34,7 @@ from roverswarm.mission import MissionConfig, MissionRunConfig
 from roverswarm.presets import PRESETS
 from roverswarm.runs import CONFIG
 from roverswarm.trainer import train, training_notes
+from roverswarm.tyro_errors import refusal
 
 
 @dataclass(frozen=True)
@@ -271,36 +271,6 @@ def _train_defaults(argv: list[str]) -> dict[str, object]:
     return {"train": TrainCommand(preset=preset, config=config)}
 
 
-def _value_error(text: str) -> str | None:
-    """The message of tyro's box for a value it could not convert (``--episodes 2.5``), in one
-    line; None for any other output."""
-    start = text.find("Error parsing ")
-    if start < 0:
-        return None
-    parts = []
-    for line in text[start:].splitlines():
-        line = line.strip("│| ")  # the box's sides (ASCII ones where the output cannot show others)
-        if not line or set(line) <= set("─-"):  # the rule below the message
-            break
-        parts.append(line)
-    option, _, message = " ".join(parts).removeprefix("Error parsing ").partition(": ")
-    conversions = {
-        "invalid literal for int() with base 10: ": "an integer",
-        "could not convert string to float: ": "a number",
-    }
-    for said, kind in conversions.items():
-        if message.startswith(said):
-            return f"{option} must be {kind}, got {message.removeprefix(said)}"
-    optional = re.fullmatch(r"no type matching \{None\}\|(INT|FLOAT) could be instantiated from \['(.*)'\]\.?", message)
-    if optional:  # an option whose default is None (the preset's value)
-        kind = "an integer" if optional[1] == "INT" else "a number"
-        return f"{option} must be {kind} (or None: the default), got {optional[2]!r}"
-    listed = re.fullmatch(r"Could not find valid parse for arguments: \[(.*)\]", message)
-    if listed:  # a list of integers (--hidden)
-        return f"{option} must be a list of integers, got {listed[1]}"
-    return f"{option}: {message}"
-
-
 def _check_not_empty(argv: list[str]) -> None:
     """Refuses an empty argument (``--out ""``, ``--out=``; most often an unset shell variable),
     which tyro would take as the current folder or an empty name."""
@@ -327,9 +297,9 @@ def _check_lists_given(cmd, argv: list[str]) -> None:
 
 
 def _parse(commands: tuple, argv: list[str]):
-    """tyro's parse of ``argv``. A value it cannot convert is a :class:`UserError` (one line
-    and exit code 2, as every other bad value); so is an empty one; its other messages (help,
-    unknown options) are its own."""
+    """tyro's parse of ``argv``. What tyro refuses (a value it cannot convert, a choice or an
+    option it does not know, a missing argument) is a :class:`UserError`: one line and exit
+    code 2, as every other bad value; so is an empty value. Its help is its own."""
     _check_not_empty(argv)
     captured = io.StringIO()
     try:
@@ -342,7 +312,7 @@ def _parse(commands: tuple, argv: list[str]):
                 args=argv,
             )
     except SystemExit as exit:
-        line = _value_error(captured.getvalue()) if exit.code else None
+        line = refusal(captured.getvalue(), argv, tuple(COMMANDS)) if exit.code else None
         if line is None:
             sys.stderr.write(captured.getvalue())
             raise

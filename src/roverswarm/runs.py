@@ -344,6 +344,11 @@ class Run:
             f"--partners other-seeds needs a run trained with --seeds >= 2, this one has {config.seeds}",
         )
         algo, ensemble = config.learner.algo, config.learner.ensemble
+        require(
+            sub_policies == "random" or ensemble > 1,
+            f"--sub-policies each needs a run trained with --ensemble K > 1 (each agent's K sub-policies in turn); "
+            f"the run in '{self.folder}' has one policy per agent",
+        )
         sub = [None] if ensemble == 1 or sub_policies == "random" else list(range(ensemble))
         policies = []
         for s in range(config.seeds):

@@ -319,7 +319,6 @@ def sweep(config: SweepConfig, live: bool = True) -> Path:
     summary = Summary(runs, done)
     table: list[dict[str, object]] = []
     tabulated = []  # the runs in the table, in the file's order
-    config.out.mkdir(parents=True, exist_ok=True)
 
     def tabulate(finished: set[str]) -> None:  # the runs after the table's last, while finished
         for run in runs[len(tabulated) :]:
