@@ -29,6 +29,7 @@ from roverswarm.evaluate import EvaluateConfig
 from roverswarm.experiments import ReproduceConfig, reproduce
 from roverswarm.experiments.sweep import SweepConfig
 from roverswarm.export import CHECK_OBSERVATIONS, ExportConfig, export_run
+from roverswarm.finetune import PROGRESS, FinetuneConfig, finetune
 from roverswarm.limits import read_config
 from roverswarm.mission import MissionConfig, MissionRunConfig
 from roverswarm.presets import PRESETS
@@ -230,6 +231,11 @@ def run_export(cmd: ExportConfig) -> None:
     _console().print(f"wrote {cmd.out}{layer} ({', '.join(result.files)}); {checked}{behind}")
 
 
+def run_finetune(cmd: FinetuneConfig) -> None:
+    out = finetune(cmd)
+    _console().print(f"done: {out} is a run of its own (evaluate, mission, export read it); progress in {PROGRESS}")
+
+
 COMMANDS: dict[str, tuple[type, Callable]] = {
     "scenarios": (ScenariosCommand, run_scenarios),
     "render": (RenderConfig, run_render),
@@ -239,6 +245,7 @@ COMMANDS: dict[str, tuple[type, Callable]] = {
     "reproduce": (ReproduceCommand, run_reproduce),
     "mission": (MissionConfig, run_mission),
     "export": (ExportConfig, run_export),
+    "finetune": (FinetuneConfig, run_finetune),
 }
 
 

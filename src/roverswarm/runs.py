@@ -233,8 +233,16 @@ def read_metrics(path: Path) -> list[dict[str, float]]:
         raise UserError(f"'{path}' is damaged ({error}); it is not a roverswarm metrics file") from error
 
 
-def plot_learning_curve(rows: list[dict[str, float]], path: Path, title: str) -> None:
-    """Mean episode reward per 1000 episodes: one thin line per seed and their mean."""
+def plot_learning_curve(
+    rows: list[dict[str, float]],
+    path: Path,
+    title: str,
+    x: str = "episodes",
+    y: str = "episode_reward",
+    ylabel: str = "mean episode reward",
+) -> None:
+    """Mean episode reward per 1000 episodes (or column ``y`` against ``x``): one thin line per
+    seed and their mean."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -244,14 +252,14 @@ def plot_learning_curve(rows: list[dict[str, float]], path: Path, title: str) ->
     seeds = sorted({int(r["seed"]) for r in rows})
     curves = []
     for s in seeds:
-        xs = [r["episodes"] for r in rows if int(r["seed"]) == s]
-        ys = [r["episode_reward"] for r in rows if int(r["seed"]) == s]
+        xs = [r[x] for r in rows if int(r["seed"]) == s]
+        ys = [r[y] for r in rows if int(r["seed"]) == s]
         ax.plot(xs, ys, lw=0.8, alpha=0.5, label=f"seed {s}")
         curves.append(ys)
     length = min(len(c) for c in curves)
     ax.plot(xs[:length], np.mean([c[:length] for c in curves], axis=0), color="black", lw=2, label="mean")
-    ax.set_xlabel("episodes")
-    ax.set_ylabel("mean episode reward")
+    ax.set_xlabel(x)
+    ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.legend(fontsize=7)
     fig.tight_layout()

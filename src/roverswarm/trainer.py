@@ -65,7 +65,7 @@ class Result:
     out: Path | None
 
 
-class _StopFlag:
+class StopFlag:
     """Turns Ctrl-C (SIGINT) and SIGTERM (schedulers, Ray) into a flag the host loop checks
     between chunks (in the main thread only); with ``announce`` (a command at a terminal, a
     grid's runs in its own process) the first signal says so at once (a job of ``reproduce``
@@ -76,9 +76,10 @@ class _StopFlag:
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
-    def __init__(self, announce: bool = False):
+    def __init__(self, announce: bool = False, unit: str = "chunk"):
         self.raised = False
         self.announce = announce
+        self.unit = unit  # what the loop finishes before it stops
         self._previous: dict[int, object] = {}
 
     def __enter__(self):
@@ -94,7 +95,7 @@ class _StopFlag:
             name = signal.Signals(signum).name
             try:  # a closed stderr (`| tee` killed by the same Ctrl-C) must not cost the checkpoint
                 print(
-                    f"\nroverswarm: {name}: stopping after this chunk, with a checkpoint (SIGKILL stops "
+                    f"\nroverswarm: {name}: stopping after this {self.unit}, with a checkpoint (SIGKILL stops "
                     "at once, keeping the last checkpoint saved)",
                     file=sys.stderr,
                     flush=True,
@@ -325,7 +326,7 @@ def _train(
         disable=not progress,
     )
     try:
-        with bar, _StopFlag(announce=progress if announce is None else announce) as stop:
+        with bar, StopFlag(announce=progress if announce is None else announce) as stop:
             task = bar.add_task(
                 f"{config.learner.algo} {config.env_name()}",
                 total=config.episodes,
@@ -363,9 +364,10 @@ def _train(
                 )
                 out_of_time = budget_spent(config, spent) and chunk + 1 < chunks
                 last = chunk + 1 == chunks or out_of_time
+                stopping = stop.raised  # read once: a signal between two reads stopped the run unsaved
                 if out is not None:  # every chunk's rows at once; rows past the checkpoint are trimmed on resume
                     write_csv(out / METRICS, rows)
-                if out is not None and (last or stop.raised or checkpoint_due(config, chunk + 1 - first, saved_at)):
+                if out is not None and (last or stopping or checkpoint_due(config, chunk + 1 - first, saved_at)):
                     if not _all_finite(runner.learner):  # the chunk's last update, which no loss saw yet
                         raise _diverged("network parameters", episodes, out)
                     unfinished = chunk + 1 < chunks  # a finished run's replay is dropped (most of the file)
@@ -374,7 +376,7 @@ def _train(
                         write_text(out / CONFIG, config_to_json(config))
                         config_due = False
                     saved_at = time.monotonic()
-                if stop.raised and not last:
+                if stopping and not last:
                     if out is not None:
                         plot_learning_curve(rows, out / CURVE, f"{config.learner.algo} on {config.env_name()}")
                     where = (
