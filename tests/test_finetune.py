@@ -61,22 +61,33 @@ def test_a_count_keeps_its_value_and_takes_the_sigmoids_slope():
     np.testing.assert_allclose(slope, -s * (1 - s) / tau, rtol=1e-5, atol=1e-7)
 
 
-def test_the_objective_is_the_episode_reward_stepped_in_python(small_run, tmp_path):
+@pytest.mark.parametrize("stop_when_complete", [False, True])
+def test_the_objective_is_the_episode_reward_stepped_in_python(small_run, tmp_path, stop_when_complete):
     """Its value: the environment's reward summed over the rovers and steps, over N^2, as a
     plain loop of ``step_env`` with the policy's clipped mean gives it (a swarm of 2 in the
-    padded layout of 3)."""
-    run = Run(small_run)
+    padded layout of 3); with --stop-when-complete, up to the step that observes the last POI."""
+    trained = Run(small_run)
+    config = dataclasses.replace(trained.config, stop_when_complete=stop_when_complete)
+    run = Run.of(config, trained.learner)
     objective, params = episode_objective(run, settings(small_run, tmp_path))
     actor = jax.tree.map(lambda x: x[1], run.learner.actor)
     state = reset(jax.random.PRNGKey(3), sized(padded_scenario("paper-2..3"), 2))[1]
+    if stop_when_complete:  # rover 0 beside the one POI left to observe: the episode ends at its first step
+        state = state.replace(
+            observed=state.observed.at[1].set(True), rover_pos=state.rover_pos.at[0].set(state.poi_pos[0] + 0.02)
+        )
     value, counts = objective(actor, state)
-    policy = run.policy(1)
-    total, contacts = 0.0, 0.0
+    policy = trained.policy(1)
+    total, contacts, steps = 0.0, 0.0, 0
     for _ in range(params.max_steps):
         action = policy.act(None, None, state, None, policy.weights, params)
-        _, state, rewards, _, _, info = step_env(state, action, params)
+        _, state, rewards, terminated, _, info = step_env(state, action, params)
         total += float(jnp.sum(jnp.where(state.rover_mask, rewards, 0.0)))
         contacts += float(jnp.sum(info["trap_contacts"]))
+        steps += 1
+        if terminated:
+            break
+    assert steps == (1 if stop_when_complete else params.max_steps)
     np.testing.assert_allclose(float(value) * 4, total, rtol=1e-5)
     assert float(counts[0]) == contacts
 

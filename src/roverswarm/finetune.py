@@ -93,20 +93,23 @@ def smooth_count(gaps: jax.Array, tau: float) -> jax.Array:
 def episode_objective(run: Run, settings: FinetuneConfig):
     """``objective(actor, state) -> (value, (trap contacts, collisions))`` of one episode from
     ``state`` (a reset of the run's padded or single-size environment): the swarm's reward
-    summed over its rovers and steps, over N^2, with the slopes of :func:`smooth_count`."""
+    summed over its rovers and steps, over N^2, with the slopes of :func:`smooth_count`; for a
+    run of ``--stop-when-complete``, up to the step that observes the last POI (none after
+    it, as in its training)."""
     config = run.config
     nets = policy_networks(config.learner, config.ppo)
-    params = training_params(config, run.params).replace(terminate_on_complete=False)
+    params = training_params(config, run.params)
 
     def objective(actor, state):
         rovers = exists(state)
         count = jnp.sum(rovers)
 
-        def step(state, _):
+        def step(carry, _):
+            state, ended = carry
             view = nets.observe(state, params) if nets.any_size else observe(state, params)
             mean, _ = nets.policy(actor, nets.actor_inputs(view))
             action = mean + jax.lax.stop_gradient(jnp.clip(mean, -1.0, 1.0) - mean)
-            _, after, _, _, _, info = step_env(state, action, params)
+            _, after, _, terminated, _, info = step_env(state, action, params)
             traps = smooth_count(info["trap_gaps"], settings.tau)
             gaps = pairwise_dist(after.rover_pos, after.rover_pos) - 2 * params.rover_radius
             apart = jnp.eye(gaps.shape[0], dtype=bool) | ~(rovers[:, None] & rovers[None, :])
@@ -114,9 +117,10 @@ def episode_objective(run: Run, settings: FinetuneConfig):
             charge = params.trap_penalty + settings.trap_charge
             reward = -info["coverage_distance"] - params.collision_penalty * touched - charge * traps
             counts = jnp.stack([jnp.sum(info["trap_contacts"]), jnp.sum(info["collisions"])])
-            return after, (jnp.sum(jnp.where(rovers, reward, 0.0)), counts)
+            total = jnp.where(ended, 0.0, jnp.sum(jnp.where(rovers, reward, 0.0)))
+            return (after, ended | terminated), (total, jnp.where(ended, 0, counts))
 
-        _, (rewards, counts) = jax.lax.scan(step, state, None, length=params.max_steps)
+        _, (rewards, counts) = jax.lax.scan(step, (state, jnp.asarray(False)), None, length=params.max_steps)
         return jnp.sum(rewards) / count**2, jnp.sum(counts, axis=0).astype(jnp.float32)
 
     return objective, params
