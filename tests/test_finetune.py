@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -135,6 +136,12 @@ def test_a_stopped_finetune_resumes_to_the_numbers_of_one_that_ran_through(small
     for key in a:
         np.testing.assert_array_equal(a[key], b[key])
     assert (parted / "finetune.csv").read_text() == (whole / "finetune.csv").read_text()
+    # killed after the state was saved, before the checkpoint: the same command writes it again
+    shutil.copyfile(small_run / CHECKPOINT, parted / CHECKPOINT)
+    finetune(settings(small_run, parted, iterations=6, checkpoint_every=2), progress=False)
+    b = read_arrays(parted / CHECKPOINT, "learner/actor/")
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key])
     with pytest.raises(UserError, match="holds a fine-tune of other settings"):  # resumed only as it was begun
         finetune(settings(small_run, parted, iterations=7, checkpoint_every=2), progress=False)
     # a run of its own, evaluated as any run, also at a size it never trained on

@@ -151,9 +151,9 @@ def _record(settings: FinetuneConfig) -> dict:
     return {k: str(v) if isinstance(v, Path) else v for k, v in dataclasses.asdict(settings).items() if k != "out"}
 
 
-def _prepare(settings: FinetuneConfig) -> int:
-    """The iterations already done in ``out`` (0 for a new fine-tune, whose folder is set up
-    here from the run's files); :class:`UserError` if ``out`` holds anything else."""
+def _prepare(settings: FinetuneConfig) -> None:
+    """Checks ``out`` and, for a new fine-tune, sets it up from the run's files;
+    :class:`UserError` if it holds anything but this fine-tune."""
     out = settings.out
     require(out.resolve() != settings.run.resolve(), f"--out '{out}' is the run itself; give a folder of its own")
     if (out / RECORD).exists():
@@ -163,14 +163,13 @@ def _prepare(settings: FinetuneConfig) -> int:
             f"--out '{out}' holds a fine-tune of other settings ({RECORD}); give the same settings to resume it, "
             "or another --out",
         )
-        return int(record["iterations_done"])
+        return
     require(not (out / CONFIG).exists(), f"--out '{out}' holds a training run; give a folder of its own")
     out.mkdir(parents=True, exist_ok=True)
     for name in (CONFIG, METRICS, CHECKPOINT):
         if (settings.run / name).exists():
             shutil.copyfile(settings.run / name, out / name)
     _save_record(settings, 0)
-    return 0
 
 
 def _save_record(settings: FinetuneConfig, done: int) -> None:
@@ -178,17 +177,26 @@ def _save_record(settings: FinetuneConfig, done: int) -> None:
     write_text(settings.out / RECORD, json.dumps(record, indent=1) + "\n")
 
 
+def _saved(settings: FinetuneConfig, actors, opt_states):
+    """``(iterations done, actors, optimiser states)`` of the state saved in ``out`` (the
+    arguments, which are the run's, and 0 if none is)."""
+    if not (settings.out / STATE).exists():
+        return 0, actors, opt_states
+    state = {"actor": actors, "opt": opt_states, "done": jnp.zeros((), jnp.int32)}
+    state = restore(state, read_arrays(settings.out / STATE))
+    return int(state["done"]), state["actor"], state["opt"]
+
+
 def _save(settings: FinetuneConfig, actors, opt_states, done: int) -> None:
-    """The fine-tuned actors into the output's checkpoint, the optimiser into its own file,
-    then the record of iterations done (each file whole; a stop between them resumes from the
-    record's count, whose state the files hold or outrun by at most one save)."""
+    """The fine-tune's state (actors, optimiser, iterations done) in one file, then the
+    fine-tuned actors into the output's checkpoint and the record (each file whole: a resume
+    reads the state alone, and writes the others again)."""
     out = settings.out
+    state = flatten(serialization.to_state_dict({"actor": actors, "opt": opt_states, "done": np.int32(done)}))
+    atomic_write(out / STATE, lambda f: np.savez(f, **state), binary=True)
     with open_arrays(out / CHECKPOINT) as saved:
         arrays = {**saved, **flatten(serialization.to_state_dict(actors), "learner/actor/")}
     atomic_write(out / CHECKPOINT, lambda f: np.savez(f, **arrays), binary=True)
-    atomic_write(
-        out / STATE, lambda f: np.savez(f, **flatten(serialization.to_state_dict(opt_states), "opt/")), binary=True
-    )
     _save_record(settings, done)
 
 
@@ -202,14 +210,15 @@ def finetune(settings: FinetuneConfig, progress: bool = True) -> Path:
     fine-tune, stopped part way); returns ``settings.out``."""
     run = Run(settings.run)
     check(settings, run)
-    done = _prepare(settings)
+    _prepare(settings)
     config = dataclasses.replace(run.config, num_envs=settings.envs, size_draw_power=settings.size_draw_power)
     objective, params = episode_objective(run, settings)
     optimiser = optax.chain(optax.clip_by_global_norm(settings.grad_clip), optax.adam(settings.lr))
-    actors = Run(settings.out).learner.actor
-    opt_states = jax.vmap(optimiser.init)(actors)
-    if done:
-        opt_states = restore(opt_states, read_arrays(settings.out / STATE, "opt/"), prefix="opt/")
+    actors = run.learner.actor
+    done, actors, opt_states = _saved(settings, actors, jax.vmap(optimiser.init)(actors))
+    if done == settings.iterations:  # finished (its checkpoint written again: a stop may have come before it)
+        _save(settings, actors, opt_states, done)
+        return settings.out
 
     def loss(actor, key):
         states = reset_all(config, params, key, jnp.asarray(config.episodes))
@@ -224,7 +233,7 @@ def finetune(settings: FinetuneConfig, progress: bool = True) -> Path:
     update_all = jax.jit(jax.vmap(update))
     seeds = config.seeds
     base = jax.random.PRNGKey(settings.seed)
-    rows = _rows(settings.out) if done else []
+    rows = _rows(settings.out, done)
     bar = Progress(
         TextColumn("finetune", style="bold"),
         BarColumn(),
@@ -264,12 +273,11 @@ def finetune(settings: FinetuneConfig, progress: bool = True) -> Path:
     return settings.out
 
 
-def _rows(out: Path) -> list[dict]:
-    """``finetune.csv``'s rows up to the state saved (rows a stopped session wrote past it are
-    written again on resume)."""
-    if not (out / PROGRESS).exists():
+def _rows(out: Path, done: int) -> list[dict]:
+    """``finetune.csv``'s rows up to iteration ``done``, the state saved (rows a stopped session
+    wrote past it are written again on resume)."""
+    if not done or not (out / PROGRESS).exists():
         return []
-    done = json.loads((out / RECORD).read_text())["iterations_done"]
     lines = (out / PROGRESS).read_text().splitlines()
     header = lines[0].split(",")
     rows = [dict(zip(header, map(float, line.split(",")))) for line in lines[1:]]

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +49,7 @@ from roverswarm.config import TrainConfig, with_options
 from roverswarm.env.entities import POI_ORDERS
 from roverswarm.evaluate import evaluate_run
 from roverswarm.experiments.sweep import figure, markdown, read_table
+from roverswarm.finetune import RECORD as FINETUNED
 from roverswarm.jaxcache import enable_compilation_cache
 from roverswarm.limits import read_config
 from roverswarm.presets import PRESETS
@@ -97,6 +99,8 @@ def table(
     means the sweep tables give (``shield``: the policies behind the safety layer, ``evaluate
     --shield``)."""
     done, minutes = trained(run)
+    if (run / FINETUNED).exists():  # a run of `roverswarm finetune`: the training of the run it fine-tuned, then that
+        setting += f" + finetune ({json.loads((run / FINETUNED).read_text())['iterations_done']} iterations)"
     rows = []
     evaluated = evaluate_run(run, episodes, scenario="paper-" + ",".join(str(n) for n in sizes), shield=shield)
     for n in sizes:
