@@ -158,6 +158,7 @@ def test_bad_finetunes_are_one_line_and_exit_2(small_run, tiny_config, tmp_path,
     refused([small_run, "--out", small_run], "is the run itself")
     refused([small_run, "--out", tmp_path / "a", "--lr", "0"], "--lr must be a finite number > 0.0, got 0.0")
     refused([small_run, "--out", tmp_path / "a", "--iterations", "0"], "--iterations must be >= 1")
+    refused([small_run, "--out", tmp_path / "a", "--envs", "257"], "--envs must be at most 256 episodes per step")
     off = tmp_path / "off"  # an off-policy run's folder (its networks are never read)
     off.mkdir()
     (off / CONFIG).write_text(config_to_json(tiny_config))

@@ -51,6 +51,9 @@ RECORD, PROGRESS, FIGURE, STATE = "finetune.json", "finetune.csv", "finetune.png
 figure, and its own state (the optimiser's, for a resume)."""
 OBJECTIVE = "episode reward / N^2 (a step's mean)"
 """What ``finetune.csv``'s ``objective`` is: each seed's mean over the step's episodes."""
+MAX_ENVS = 256
+"""Episodes per seed and step at most: the gradient keeps every step of every episode, so its
+memory grows with them, the seeds and the largest swarm."""
 LOG_EVERY = 25
 """Iterations between the rows of ``finetune.csv``."""
 
@@ -129,7 +132,11 @@ def episode_objective(run: Run, settings: FinetuneConfig):
 def check(settings: FinetuneConfig, run: Run) -> None:
     """Every setting and the run it fine-tunes, before anything is computed."""
     require_positive(settings, ("iterations", "envs", "checkpoint_every"))
-    require(settings.envs <= 4096, f"--envs must be at most 4096 episodes per step, got {settings.envs}")
+    require(
+        settings.envs <= MAX_ENVS,
+        f"--envs must be at most {MAX_ENVS} episodes per step (every step of each is kept for the gradient), "
+        f"got {settings.envs}",
+    )
     require_finite(settings.lr, 0.0, "lr", strict=True)
     require_finite(settings.tau, 0.0, "tau", strict=True)
     require_finite(settings.trap_charge, 0.0, "trap-charge")
@@ -147,8 +154,10 @@ def check(settings: FinetuneConfig, run: Run) -> None:
 
 
 def _record(settings: FinetuneConfig) -> dict:
-    """What ``finetune.json`` says of the settings (a resume must give the same)."""
-    return {k: str(v) if isinstance(v, Path) else v for k, v in dataclasses.asdict(settings).items() if k != "out"}
+    """What ``finetune.json`` says of the settings (a resume must give the same; the run's
+    folder however it is spelt)."""
+    fields = dataclasses.asdict(settings)
+    return {k: str(v.resolve()) if isinstance(v, Path) else v for k, v in fields.items() if k != "out"}
 
 
 def _prepare(settings: FinetuneConfig) -> None:
