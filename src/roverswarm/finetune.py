@@ -48,7 +48,7 @@ from roverswarm.trainer import StopFlag
 
 RECORD, PROGRESS, FIGURE, STATE = "finetune.json", "finetune.csv", "finetune.png", "finetune_state.npz"
 """What a fine-tune writes beside the run's files: its settings and progress, its table and its
-figure, and its own state (the optimiser's, for a resume)."""
+figure, and its own state (actors, optimiser and iterations done: all a resume reads)."""
 OBJECTIVE = "episode reward / N^2 (a step's mean)"
 """What ``finetune.csv``'s ``objective`` is: each seed's mean over the step's episodes."""
 MAX_ENVS = 256
