@@ -84,9 +84,9 @@ def refusal(text: str, argv: list[str], commands: tuple[str, ...]) -> str | None
     if unknown:
         given = re.split(r"[,\s]+", re.sub(r"\(applied to [^)]*\)", "", unknown[1]).strip())
         flags = [g for g in given if g.startswith("-")]
-        commands = next((_paragraph(h) for h in hints if h and h[0].startswith("Available subcommands: ")), None)
-        if commands and not flags:
-            return f"unknown command '{given[0]}': choose one of {commands.removeprefix('Available subcommands: ')}"
+        listed = next((_paragraph(h) for h in hints if h and h[0].startswith("Available subcommands: ")), None)
+        if listed and not flags:
+            return f"unknown command '{given[0]}': choose one of {listed.removeprefix('Available subcommands: ')}"
         meant = next((_suggestions(h, argv) for h in hints if h and h[0].strip() == "Perhaps you meant:"), [])
         guess = f" (did you mean {' or '.join(meant)}?)" if meant else ""
         return f"unknown option {', '.join(flags or given)}{guess}: see {helper}"
